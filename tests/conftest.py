@@ -41,6 +41,7 @@ def real_atlas_path() -> Path:
 def write_tiny_atlas(root: Path, ids: tuple[int, ...] = (1, 2, 3), *, seed: int = 0) -> Path:
     """Write a small atlas in the Han layout: octahedra standing in for the three bones."""
     rng = np.random.default_rng(seed)
+    root.mkdir(parents=True, exist_ok=True)
     (root / "table.csv").write_text(
         "TCIA Subject ID,Atlas ID\n" + "".join(f"CASE_{i:03d},{i}\n" for i in ids)
     )

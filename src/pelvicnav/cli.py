@@ -39,7 +39,7 @@ AtlasOption = Annotated[
 def _fail(message: str) -> typer.Exit:
     from rich.console import Console
 
-    Console(stderr=True).print(f"[bold red]error:[/] {message}", highlight=False)
+    Console(stderr=True, soft_wrap=True).print(f"[bold red]error:[/] {message}", highlight=False)
     return typer.Exit(code=2)
 
 
@@ -67,7 +67,9 @@ def atlas_info(atlas: AtlasOption = None) -> None:
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
     console = Console()
-    console.print(f"[bold]atlas[/] {a.source}: {a.n_subjects} subjects, {a.n_vertices} vertices/bone")
+    console.print(
+        f"[bold]atlas[/] {a.source}: {a.n_subjects} subjects, {a.n_vertices} vertices/bone"
+    )
     table = Table("bone", "vertices", "triangles", "mean extent x/y/z (mm)", "centroid (mm, LPS)")
     for b, bone in enumerate(a.bones):
         v = a.vertices[:, b]
@@ -90,7 +92,8 @@ def atlas_download(
         Path | None, typer.Option(help="Install folder (default: the user cache).")
     ] = None,
     url: Annotated[
-        list[str] | None, typer.Option(help="Archive URL(s) to try instead of the public repository.")
+        list[str] | None,
+        typer.Option(help="Archive URL(s) to try instead of the public repository."),
     ] = None,
     force: Annotated[bool, typer.Option(help="Replace an installed atlas.")] = False,
 ) -> None:
@@ -112,7 +115,9 @@ def atlas_download(
             bar.update(task, completed=done, total=total)
 
         try:
-            a = download_atlas(target, urls=tuple(url) if url else ATLAS_URLS, force=force, progress=report)
+            a = download_atlas(
+                target, urls=tuple(url) if url else ATLAS_URLS, force=force, progress=report
+            )
         except (ValueError, FileExistsError) as err:
             raise _fail(str(err)) from None
     typer.echo(f"atlas installed at {target}: {a.n_subjects} subjects x {len(a.bones)} bones")

@@ -24,8 +24,9 @@ Conventions
 
 The 9-DoF parameterisation follows equation 9 of Han et al. (2020): the source position relative to
 the detector (``[s_x, s_y, s_z]``: ``s_z`` the source-detector distance, ``(s_x, s_y)`` the
-principal point relative to the detector centre, mm, in detector axes) plus the detector's rigid pose
-(3 translations, 3 rotations). The 6-DoF parameterisation keeps ``P`` fixed and moves the object.
+principal point relative to the detector centre, mm, in detector axes) plus the detector's rigid
+pose (3 translations, 3 rotations). The 6-DoF parameterisation keeps ``P`` fixed and moves the
+object.
 """
 
 from __future__ import annotations
@@ -442,7 +443,9 @@ class NineDof:
         v = np.asarray(v, dtype=np.float64)
         if v.shape != (9,):
             raise ValueError(f"a 9-DoF vector has shape (9,), got {v.shape}")
-        return cls(source_in_detector=tuple(v[:3]), world_from_detector=tf.from_params(v[3:6], v[6:9]))
+        return cls(
+            source_in_detector=tuple(v[:3]), world_from_detector=tf.from_params(v[3:6], v[6:9])
+        )
 
 
 def projection_from_nine_dof(

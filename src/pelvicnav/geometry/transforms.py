@@ -12,12 +12,12 @@ Conventions (used everywhere in pelvicnav)
 
   with translation in mm, rotation in radians and ``log s`` dimensionless. ``exp`` is the *true*
   matrix exponential of ``sum_i b_i B_i`` (equation 4a), so the translation of ``exp(b)`` is
-  ``V t`` (coupled through the V matrix below), not ``t`` itself. SE(3) is the ``log s = 0`` case and
-  uses the 6-vector ``[t_x, t_y, t_z, r_x, r_y, r_z]``.
+  ``V t`` (coupled through the V matrix below), not ``t`` itself. SE(3) is the ``log s = 0`` case
+  and uses the 6-vector ``[t_x, t_y, t_z, r_x, r_y, r_z]``.
 * A *decoupled* parameterisation, ``T = [[exp(log s) R(r), t], [0, 1]]``, is offered separately
-  (:func:`from_params` / :func:`to_params`). It is what optimisers and the C-arm use, because there a
-  parameter in mm must move the object by exactly that many mm. The statistical pose model uses the
-  exact exponential map, where the geodesic distance of equation 5 is defined.
+  (:func:`from_params` / :func:`to_params`). It is what optimisers and the C-arm use, because
+  there a parameter in mm must move the object by exactly that many mm. The statistical pose model
+  uses the exact exponential map, where the geodesic distance of equation 5 is defined.
 
 References
 ----------
@@ -484,7 +484,14 @@ def from_params(
 def to_params(
     T: ArrayLike, *, atol: float = _DEFAULT_ATOL
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Inverse of :func:`from_params`: ``(translation (..., 3), rotvec (..., 3), log_scale (...))``."""
+    """Inverse of :func:`from_params`.
+
+    Returns
+    -------
+    translation : (..., 3) float64, mm
+    rotvec : (..., 3) float64, radians
+    log_scale : (...) float64
+    """
     T = _as_similarity(T, atol, "T")
     s = np.cbrt(np.linalg.det(T[..., :3, :3]))
     r = rotvec_from_matrix(T[..., :3, :3] / s[..., None, None], atol=atol)
@@ -592,7 +599,9 @@ def _as_similarity(T: ArrayLike, atol: float, name: str) -> NDArray[np.float64]:
     bad = T[idx] if idx else T
     label = f"{name}{list(idx) if idx else ''}"
     if np.abs(bad[3] - [0, 0, 0, 1]).max() > atol:
-        raise ValueError(f"{label} is not homogeneous: last row is {bad[3].tolist()}, not [0,0,0,1]")
+        raise ValueError(
+            f"{label} is not homogeneous: last row is {bad[3].tolist()}, not [0,0,0,1]"
+        )
     det = np.linalg.det(bad[:3, :3])
     if det <= 0:
         raise ValueError(

@@ -104,7 +104,9 @@ def _parse(data: bytes) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
             m, size = int(words[1]), int(words[2])
             flat, pos = _read_values(data, pos, size, "int", mode, int, "POLYGONS")
             if size != 4 * m or np.any(flat[::4] != 3):
-                raise ValueError("POLYGONS contains non-triangular polygons; only triangles are read")
+                raise ValueError(
+                    "POLYGONS contains non-triangular polygons; only triangles are read"
+                )
             triangles = flat.reshape(m, 4)[:, 1:].astype(np.int64)
         elif key in ("POINT_DATA", "CELL_DATA", "METADATA", "FIELD"):
             break  # attributes follow; nothing the atlas needs

@@ -1,0 +1,84 @@
+"""The pelvicnav command line: help, atlas commands, demo, and clear errors."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from pelvicnav.cli import app
+
+runner = CliRunner()
+
+
+def test_help_runs_without_heavy_imports():
+    # --help must not import numpy/scipy (kept inside commands so it answers at once).
+    code = (
+        "import sys; from pelvicnav.cli import app; "
+        "print('numpy' in sys.modules, 'scipy' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]
+    res = runner.invoke(app, ["--help"])
+    assert res.exit_code == 0
+    assert "atlas" in res.output and "demo" in res.output
+
+
+def test_atlas_info(tiny_atlas):
+    res = runner.invoke(app, ["atlas", "info", "--atlas", str(tiny_atlas)])
+    assert res.exit_code == 0, res.output
+    assert "3 subjects" in res.output
+    assert "left_hip" in res.output and "subjects: 1, 2, 3" in res.output
+
+
+def test_atlas_info_bad_input(tiny_atlas, tmp_path):
+    res = runner.invoke(app, ["atlas", "info", "--atlas", str(tmp_path / "nowhere")])
+    assert res.exit_code == 2
+    assert "no pelvis atlas" in res.output
+    (tiny_atlas / "surface" / "left" / "LeftHip1_cpd.vtk").write_text("garbage")
+    res = runner.invoke(app, ["atlas", "info", "--atlas", str(tiny_atlas)])
+    assert res.exit_code == 2
+    assert "LeftHip1_cpd.vtk" in res.output and "Traceback" not in res.output
+
+
+def test_atlas_download_from_url(tiny_atlas, tmp_path):
+    import zipfile
+
+    archive = tmp_path / "a.zip"
+    with zipfile.ZipFile(archive, "w") as zf:
+        for f in tiny_atlas.rglob("*"):
+            if f.is_file():
+                zf.write(f, "repo-main/" + f.relative_to(tiny_atlas).as_posix())
+    dest = tmp_path / "installed"
+    # A 3-subject archive is not the 40-subject atlas: validation must refuse it.
+    res = runner.invoke(app, ["atlas", "download", "--dest", str(dest), "--url", archive.as_uri()])
+    assert res.exit_code == 2
+    assert "lists 3 subjects, expected 40" in res.output
+    assert not dest.exists()
+
+
+@pytest.mark.atlas
+def test_atlas_info_real(real_atlas_path):
+    res = runner.invoke(app, ["atlas", "info", "--atlas", str(real_atlas_path)])
+    assert res.exit_code == 0, res.output
+    assert "40 subjects, 5000 vertices/bone" in res.output
+
+
+def test_demo_without_atlas(tmp_path, monkeypatch):
+    monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    res = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])
+    assert res.exit_code == 0, res.output
+    assert "C-arm views" in res.output and "Skipping the atlas projection" in res.output
+
+
+def test_demo_with_atlas_writes_figure(tiny_atlas, tmp_path):
+    out = tmp_path / "demo"
+    res = runner.invoke(app, ["demo", "--out", str(out), "--atlas", str(tiny_atlas)])
+    assert res.exit_code == 0, res.output
+    png = out / "atlas_projection.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert os.path.getsize(png) > 10_000
