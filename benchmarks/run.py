@@ -13,7 +13,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
-from benchmarks.harness import environment  # noqa: E402
+from benchmarks.harness import environment
 
 
 def main() -> None:
