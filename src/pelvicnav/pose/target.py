@@ -1,0 +1,379 @@
+"""Target reduction pose of dislocated bones from the observed ones (SPM and SPM_CC).
+
+Han et al. (2020), equations 8a-8b and the collision refinement of section 2.1.2.
+
+Given the segmented meshes of the observed (undislocated) bones and of the dislocated bone(s) in
+the preoperative CT:
+
+1. the subject is normalised with the observed bones (:meth:`PoseModel.normalised_from_subject`),
+2. the observed bones' tangent vectors ``b_O`` give the mode weights by incomplete PCA with a
+   Gaussian prior on the weights (equation 8a plus a Tikhonov term ``alpha * sum v_k^2 / lambda_k``,
+   solved with scipy's trust-region Newton-CG = Steihaug's method),
+3. ``b_X = mean_X + P_X v`` (8b) places the dislocated bone's mean shape (exponential map),
+4. the subject's own dislocated mesh is fitted rigidly onto that placement: the result is the rigid
+   ``target_from_current`` that reduces the bone,
+5. SPM_CC: where the reduced bone overlaps an opposing joint surface, it is translated along the
+   joint normal by the smallest amount that restores the minimum joint space seen in training.
+
+With only the observed bones entering steps 1-3, the estimate cannot depend on where the dislocated
+bone currently is (a test checks this).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from pelvicnav.geometry import transforms as tf
+from pelvicnav.geometry.procrustes import fit_transform
+from pelvicnav.pose.collision import (
+    JOINTS,
+    JointSurface,
+    find_joint_surfaces,
+    joint_gaps,
+    refine_translation,
+    subject_joint_gaps,
+    vertex_normals,
+)
+from pelvicnav.pose.spm import BONES, PoseModel, check_bones
+
+__all__ = ["TargetEstimate", "TargetPlanner", "solve_weights"]
+
+
+@dataclass(frozen=True)
+class TargetEstimate:
+    """Estimated target (reduced) pose of one dislocated bone.
+
+    Attributes
+    ----------
+    bone : str
+    target_from_current : (4, 4) float64
+        Rigid transform moving the bone from where it is (its segmentation) to the target.
+    vertices : (n_vertices, 3) float64
+        The bone's vertices at the target, CT frame (mm).
+    predicted_mean : (n_vertices, 3) float64
+        The population mean shape placed at the SPM's predicted pose.
+    refinement : (3,) float64
+        Translation (mm) added by the collision refinement (zero for plain SPM).
+    """
+
+    bone: str
+    target_from_current: NDArray[np.float64]
+    vertices: NDArray[np.float64]
+    predicted_mean: NDArray[np.float64]
+    refinement: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+
+def solve_weights(
+    residual: ArrayLike,
+    modes: ArrayLike,
+    variances: ArrayLike,
+    *,
+    prior: float,
+    method: str = "trust-ncg",
+) -> NDArray[np.float64]:
+    """Equation 8a with a prior: ``argmin_v |r - P v|^2 + prior * sum_k v_k^2 / lambda_k``.
+
+    Parameters
+    ----------
+    residual : (m,) float
+        ``b_O - mean_O``.
+    modes : (m, k) float
+        ``[P_SPM]_O``.
+    variances : (k,) float
+    prior : float
+        Tikhonov weight (``0`` gives plain least squares, which over-fits with many modes).
+    method : {"trust-ncg", "direct"}
+        Steihaug's trust-region Newton-CG (as the paper) or a direct solve of the normal equations.
+    """
+    r = np.asarray(residual, dtype=np.float64)
+    P = np.asarray(modes, dtype=np.float64)
+    lam = np.asarray(variances, dtype=np.float64)
+    H = P.T @ P + prior * np.diag(1.0 / lam)
+    g0 = P.T @ r
+    if method == "direct":
+        return np.linalg.lstsq(H, g0, rcond=None)[0]
+    if method != "trust-ncg":
+        raise ValueError(f"method must be 'trust-ncg' or 'direct', got {method!r}")
+    from scipy.optimize import minimize
+
+    scale = np.sqrt(lam)  # optimise u = v / sqrt(lambda): well conditioned for any variance range
+    Hu = H * scale[:, None] * scale[None, :]
+    gu = g0 * scale
+    res = minimize(
+        lambda u: 0.5 * u @ Hu @ u - gu @ u,
+        np.zeros(len(lam)),
+        jac=lambda u: Hu @ u - gu,
+        hess=lambda u: Hu,
+        method="trust-ncg",
+        options={"gtol": 1e-10 * max(1.0, np.linalg.norm(gu)), "maxiter": 200},
+    )
+    return res.x * scale
+
+
+@dataclass(frozen=True)
+class TargetPlanner:
+    """A pose model for one set of observed bones, with what SPM_CC needs.
+
+    Build it with :meth:`fit`; call :meth:`estimate`.
+
+    Attributes
+    ----------
+    model : PoseModel
+        Fitted with ``frame_bones`` = the observed bones.
+    faces : tuple of three (m_l, 3) int arrays
+    joints : dict
+        Joint surfaces found on the mean shapes at their mean poses.
+    min_gap : dict
+        Minimum joint space (mm) per ``(joint, moving bone)``, from the training subjects.
+    prior : float
+        Tikhonov weight of equation 8a.
+    """
+
+    model: PoseModel
+    faces: tuple[NDArray[np.int64], ...]
+    joints: dict[tuple[str, str], JointSurface]
+    min_gap: dict[tuple[tuple[str, str], str], float]
+    prior: float = 1.0
+    gap_quantile: float = 0.05
+
+    @property
+    def observed(self) -> tuple[str, ...]:
+        return self.model.frame_bones
+
+    @property
+    def dislocated(self) -> tuple[str, ...]:
+        return tuple(b for b in BONES if b not in self.model.frame_bones)
+
+    @classmethod
+    def fit(
+        cls,
+        vertices: ArrayLike,
+        faces: Sequence[ArrayLike],
+        *,
+        observed: Sequence[str],
+        prior: float = 1.0,
+        n_modes: int | None = None,
+        metric: str = "radius",
+        joint_distance: float = 8.0,
+        gap_quantile: float = 0.05,
+        gap_percentile: float = 10.0,
+        training_gaps: ArrayLike | None = None,
+    ) -> TargetPlanner:
+        """Fit the SPM for ``observed`` bones and calibrate the collision refinement.
+
+        Parameters
+        ----------
+        vertices : (n_subjects, 3, n_vertices, 3) float, mm
+            Training population (never the test subject).
+        faces : three (m_l, 3) int arrays
+        observed : sequence of str
+            Bones that will be seen undislocated at test time (at least one).
+        prior : float
+            Tikhonov weight of the weights' Gaussian prior (scaled tangent units, mm^2).
+        joint_distance : float, mm
+            Joint-surface detection distance on the mean shapes.
+        gap_quantile, gap_percentile : float
+            The minimum joint space is the ``gap_percentile``-th percentile over training subjects
+            of each subject's ``gap_quantile``-th lowest joint gap.
+        training_gaps : (n_subjects, 3, 2, n_vertices) float, optional
+            :func:`subject_joint_gaps` of each training subject, if already computed (they depend
+            on each subject alone, so a cross-validation can compute them once).
+
+        Raises
+        ------
+        ValueError
+            No observed bone, all bones observed, unknown names, or a bad population.
+        """
+        observed = check_bones(observed, what="observed bone")
+        if not observed:
+            raise ValueError("all bones are marked dislocated: at least one bone must be observed")
+        if len(observed) == len(BONES):
+            raise ValueError("no bone is marked dislocated: nothing to estimate")
+        if prior < 0:
+            raise ValueError(f"prior must be >= 0, got {prior}")
+        V = np.asarray(vertices, dtype=np.float64)
+        model = PoseModel.fit(V, frame_bones=observed, n_modes=n_modes, metric=metric)
+        fcs = tuple(np.asarray(f, dtype=np.int64) for f in faces)
+        if len(fcs) != 3:
+            raise ValueError(f"faces for 3 bones are needed, got {len(fcs)}")
+        placed = tf.apply(model.mean_poses, model.mean_shapes)
+        joints = find_joint_surfaces(placed, fcs, max_distance=joint_distance)
+        gaps = (
+            np.stack([subject_joint_gaps(V[n], fcs) for n in range(V.shape[0])])
+            if training_gaps is None
+            else np.asarray(training_gaps, dtype=np.float64)
+        )
+        if gaps.shape != (V.shape[0], len(JOINTS), 2, V.shape[2]):
+            raise ValueError(
+                f"training_gaps must have shape {(V.shape[0], len(JOINTS), 2, V.shape[2])}, "
+                f"got {gaps.shape}"
+            )
+        min_gap = {}
+        for k, pair in enumerate(JOINTS):
+            joint = joints[pair]
+            for side, mover in enumerate(pair):
+                g = gaps[:, k, side][:, joint.vertices[side]]
+                per_subject = [
+                    np.quantile(row[np.isfinite(row)], gap_quantile)
+                    for row in g
+                    if np.isfinite(row).any()
+                ]
+                min_gap[(pair, mover)] = (
+                    float(np.percentile(per_subject, gap_percentile)) if per_subject else 0.0
+                )
+        return cls(
+            model=model,
+            faces=fcs,
+            joints=joints,
+            min_gap=min_gap,
+            prior=prior,
+            gap_quantile=gap_quantile,
+        )
+
+    def estimate(
+        self,
+        observed: Mapping[str, ArrayLike],
+        current: Mapping[str, ArrayLike],
+        *,
+        collision: bool = True,
+        method: str = "trust-ncg",
+    ) -> dict[str, TargetEstimate]:
+        """Target poses of the dislocated bones.
+
+        Parameters
+        ----------
+        observed : mapping bone -> (n_vertices, 3) float, mm
+            Segmented meshes of the observed bones (CT frame); exactly :attr:`observed`.
+        current : mapping bone -> (n_vertices, 3) float, mm
+            Segmented meshes of the dislocated bones where they are now; exactly
+            :attr:`dislocated`.
+        collision : bool
+            Apply the joint-collision refinement (SPM_CC) or not (SPM).
+
+        Returns
+        -------
+        dict bone -> TargetEstimate
+        """
+        nv = self.model.mean_shapes.shape[1]
+        obs = _check_meshes(observed, self.observed, nv, "observed")
+        cur = _check_meshes(current, self.dislocated, nv, "dislocated")
+        m = self.model
+        G = m.normalised_from_subject(np.stack([obs[b] for b in self.observed]))
+        subject_from_normalised = tf.invert(G)
+        rows = np.concatenate([np.arange(7 * BONES.index(b), 7 * BONES.index(b) + 7) for b in obs])
+        b_obs = np.concatenate([m.tangent(b, tf.apply(G, obs[b])) for b in self.observed])
+        v = solve_weights(
+            b_obs - m.mean[rows], m.modes[rows], m.variances, prior=self.prior, method=method
+        )
+        poses = m.poses_from_vector(m.mean + m.modes @ v)
+        out = {}
+        for bone in self.dislocated:
+            lb = BONES.index(bone)
+            predicted = tf.apply(subject_from_normalised @ poses[lb], m.mean_shapes[lb])
+            T = fit_transform(cur[bone], predicted, scale=False)
+            out[bone] = TargetEstimate(
+                bone=bone,
+                target_from_current=T,
+                vertices=tf.apply(T, cur[bone]),
+                predicted_mean=predicted,
+            )
+        if collision:
+            out = self._refine(out, obs)
+        return out
+
+    # ---- SPM_CC ---------------------------------------------------------------------------------
+    def _refine(
+        self, est: dict[str, TargetEstimate], obs: dict[str, NDArray]
+    ) -> dict[str, TargetEstimate]:
+        shifts = {b: np.zeros(3) for b in est}
+        # Joints between a dislocated bone and an observed one: move the dislocated bone.
+        # Joints between two dislocated bones (bilateral): move both, half each.
+        for _ in range(3):
+            changed = False
+            for pair, joint in self.joints.items():
+                movers = [b for b in pair if b in est]
+                if not movers:
+                    continue
+                mover = movers[0] if len(movers) == 1 else pair[1]
+                other = pair[0] if mover == pair[1] else pair[1]
+                positions = {b: est[b].vertices + shifts[b] for b in est}
+                fixed_v = positions.get(other, obs.get(other))
+                moving_v = positions[mover]
+                side = joint.side(mover)
+                normals = vertex_normals(moving_v, self.faces[BONES.index(mover)])
+                direction = -normals[joint.vertices[side]].mean(axis=0)
+                direction /= np.linalg.norm(direction)
+                split = 0.5 if len(movers) == 2 else 1.0
+
+                def gaps_after(
+                    shift,
+                    joint=joint,
+                    mover=mover,
+                    other=other,
+                    split=split,
+                    moving_v=moving_v,
+                    fixed_v=fixed_v,
+                ):
+                    moved = moving_v + split * shift
+                    fixed = fixed_v - (1 - split) * shift
+                    return _gaps_between(joint, mover, other, moved, fixed, self.faces)
+
+                delta = refine_translation(
+                    gaps_after,
+                    direction,
+                    min_gap=self.min_gap[(pair, mover)],
+                    quantile=self.gap_quantile,
+                )
+                if delta > 0:
+                    changed = True
+                    shifts[mover] = shifts[mover] + split * delta * direction
+                    if len(movers) == 2:
+                        shifts[other] = shifts[other] - (1 - split) * delta * direction
+            if not changed:
+                break
+        out = {}
+        for b, e in est.items():
+            D = np.eye(4)
+            D[:3, 3] = shifts[b]
+            out[b] = TargetEstimate(
+                bone=b,
+                target_from_current=D @ e.target_from_current,
+                vertices=e.vertices + shifts[b],
+                predicted_mean=e.predicted_mean,
+                refinement=shifts[b],
+            )
+        return out
+
+
+def _gaps_between(joint, mover, other, moving_v, fixed_v, faces) -> NDArray[np.float64]:
+    return joint_gaps(
+        moving_v,
+        faces[BONES.index(mover)],
+        joint.vertices[joint.side(mover)],
+        fixed_v,
+        faces[BONES.index(other)],
+        joint.faces[joint.side(other)],
+    )
+
+
+def _check_meshes(
+    meshes: Mapping[str, ArrayLike], expected: tuple[str, ...], n_vertices: int, what: str
+) -> dict[str, NDArray[np.float64]]:
+    names = check_bones(list(meshes), what=f"{what} bone")
+    if set(names) != set(expected):
+        raise ValueError(
+            f"{what} bones must be exactly {list(expected)} for this model, got {list(names)}"
+        )
+    out = {}
+    for b in expected:
+        x = np.asarray(meshes[b], dtype=np.float64)
+        if x.shape != (n_vertices, 3):
+            raise ValueError(f"{what} mesh {b} must have shape ({n_vertices}, 3), got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"{what} mesh {b} contains NaN or infinity")
+        out[b] = x
+    return out
