@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -12,6 +13,9 @@ from hypothesis import settings
 
 from pelvicnav.io.atlas import BONE_FILES
 from pelvicnav.io.vtk_legacy import write_polydata
+
+# Shared helpers (tests/helpers) importable from every test folder.
+sys.path.insert(0, str(Path(__file__).parent))
 
 # Property tests are derandomised: every run draws the same examples (reproducible CI).
 settings.register_profile("pelvicnav", derandomize=True, max_examples=200, deadline=None)

@@ -25,6 +25,10 @@ app = typer.Typer(
 )
 atlas_app = typer.Typer(help="The Han pelvis atlas (40 subjects x 3 bones).", no_args_is_help=True)
 app.add_typer(atlas_app, name="atlas")
+study_app = typer.Typer(
+    help="Reproduce the method's studies (tables, figures).", no_args_is_help=True
+)
+app.add_typer(study_app, name="study")
 
 AtlasOption = Annotated[
     Path | None,
@@ -121,6 +125,115 @@ def atlas_download(
         except (ValueError, FileExistsError) as err:
             raise _fail(str(err)) from None
     typer.echo(f"atlas installed at {target}: {a.n_subjects} subjects x {len(a.bones)} bones")
+
+
+@study_app.command("target-pose")
+def study_target_pose(
+    out: Annotated[Path, typer.Option(help="Output folder (created).")],
+    atlas: AtlasOption = None,
+    subjects: Annotated[
+        int | None, typer.Option(help="Test only the first N subjects (models still use the rest).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the simulated dislocations.")] = 0,
+    workers: Annotated[int, typer.Option(help="Worker processes.")] = 2,
+    prior: Annotated[float, typer.Option(help="SPM prior weight (equation 8a).")] = 0.1,
+    segmentation: Annotated[
+        str, typer.Option(help="Meshes standing in for the segmentation: 'truth' (ASM later).")
+    ] = "truth",
+) -> None:
+    """Leave-one-out target-pose study (SSM_single, CM, SPM, SPM_CC) on the atlas."""
+    from rich.console import Console
+    from rich.progress import Progress
+    from rich.table import Table
+
+    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.studies.target_pose import (
+        PAPER_MEDIANS,
+        SUMMARY_FIELDS,
+        TargetPoseSettings,
+        run_target_pose_study,
+    )
+
+    if segmentation != "truth":
+        raise _fail(
+            f"--segmentation {segmentation!r} is not available yet: only 'truth' (the atlas's "
+            "ground-truth meshes) until ASM segmentation lands"
+        )
+    try:
+        a = load_atlas(atlas)
+        ids = None if subjects is None else tuple(a.subject_ids[:subjects])
+        if subjects is not None and not 1 <= subjects <= a.n_subjects:
+            raise ValueError(f"--subjects must be between 1 and {a.n_subjects}, got {subjects}")
+        settings = TargetPoseSettings(seed=seed, subjects=ids, workers=workers, prior=prior)
+        with Progress() as bar:
+            task = bar.add_task("leave-one-out", total=len(ids or a.subject_ids))
+            run_target_pose_study(
+                a, out, settings, progress=lambda done, total: bar.update(task, completed=done)
+            )
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    import csv
+
+    with open(out / "summary.csv") as fh:
+        summary = list(csv.DictReader(fh))
+    table = Table(*SUMMARY_FIELDS[:7], "paper (mm / deg)", title=f"target pose ({out})")
+    for row in summary:
+        paper = PAPER_MEDIANS.get(row["method"])
+        table.add_row(
+            *(row[k] for k in SUMMARY_FIELDS[:7]), f"{paper[0]} / {paper[1]}" if paper else ""
+        )
+    Console().print(table)
+
+
+@study_app.command("spm-modes")
+def study_spm_modes(
+    out: Annotated[Path, typer.Option(help="PNG to write.")] = Path("spm_modes.png"),
+    atlas: AtlasOption = None,
+) -> None:
+    """Figure of the first four SPM modes at +-3 sd (cf. the paper's figure 2)."""
+    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.pose.spm import PoseModel
+    from pelvicnav.studies.figures import plot_spm_modes
+
+    try:
+        a = load_atlas(atlas)
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    plot_spm_modes(PoseModel.fit(a.vertices), out)
+    typer.echo(f"wrote {out}")
+
+
+@study_app.command("ssm-reference")
+def study_ssm_reference(atlas: AtlasOption = None) -> None:
+    """Compare our per-bone SSMs with the statismo models shipped with the atlas."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from pelvicnav.io.atlas import BONE_FILES, AtlasNotFoundError, load_atlas, resolve_atlas_path
+    from pelvicnav.io.statismo import read_statismo
+    from pelvicnav.shape.reference import compare_with_reference
+    from pelvicnav.shape.ssm import ShapeModel
+
+    try:
+        a = load_atlas(atlas)
+        root = resolve_atlas_path(atlas)
+        table = Table(
+            "bone", "mean RMS (mm)", "relative", "spectrum corr.", "max |fraction diff|",
+            title="our SSM vs the atlas's statismo model",
+        )  # fmt: skip
+        for b, bone in enumerate(a.bones):
+            ref = read_statismo(root / "SSM" / f"{BONE_FILES[bone][1]}.h5")
+            c = compare_with_reference(ShapeModel.fit(a.vertices[:, b]), ref.mean, ref.variances)
+            table.add_row(
+                bone,
+                f"{c['mean_rms_mm']:.2f}",
+                f"{100 * c['mean_rms_relative']:.1f}%",
+                f"{c['spectrum_correlation']:.3f}",
+                f"{c['max_fraction_difference']:.3f}",
+            )
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    Console().print(table)
 
 
 @app.command("demo")

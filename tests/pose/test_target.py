@@ -48,7 +48,7 @@ def test_estimate_is_accurate_on_a_population_with_known_modes(pose_population):
         train = np.delete(V, n, axis=0)
         planner = TargetPlanner.fit(train, faces, observed=("sacrum", "right_hip"), prior=0.01)
         est = planner.estimate(
-            {"sacrum": V[n, 0], "right_hip": V[n, 2]}, {"left_hip": V[n, 1]}, collision=False
+            {"sacrum": V[n, 0], "right_hip": V[n, 2]}, {"left_hip": V[n, 1]}, refine="none"
         )
         errors.append(np.linalg.norm(est["left_hip"].vertices - V[n, 1], axis=1).mean())
     # Two pose modes, both seen through the right hip: the left hip follows (mm).

@@ -320,7 +320,7 @@ def subject_joint_gaps(
             near = np.flatnonzero(np.isfinite(d_this))
             if len(near) == 0:
                 continue
-            d_other, _ = trees[this].query(V[other], distance_upper_bound=2 * candidate_distance)
+            d_other, _ = trees[this].query(V[other], distance_upper_bound=candidate_distance + 5.0)
             f = np.asarray(faces[other])
             near_other = np.isfinite(d_other)
             tri_idx = np.flatnonzero(near_other[f].any(axis=1))

@@ -82,6 +82,8 @@ class PoseModel:
     variances : (n_modes,) float64
     training : (n_subjects, 21) float64
         Scaled tangent vectors of the training subjects.
+    frame_scale : bool
+        Whether the global frame removes scale (similarity) or only a rigid motion.
     """
 
     frame_bones: tuple[str, ...]
@@ -93,6 +95,7 @@ class PoseModel:
     modes: NDArray[np.float64]
     variances: NDArray[np.float64]
     training: NDArray[np.float64]
+    frame_scale: bool = True
 
     @property
     def n_modes(self) -> int:
@@ -106,6 +109,7 @@ class PoseModel:
         frame_bones: Sequence[str] = BONES,
         n_modes: int | None = None,
         metric: str = "radius",
+        frame_scale: bool = True,
     ) -> PoseModel:
         """Fit the SPM to a population.
 
@@ -120,6 +124,10 @@ class PoseModel:
         metric : {"radius", "plain"}
             ``"radius"`` scales rotation and log-scale by the bone's RMS radius (mm); ``"plain"``
             uses the raw 7-vector as in equation 5.
+        frame_scale : bool
+            Normalise subjects by a similarity (True, the paper's Procrustes) or a rigid transform
+            of the frame bones. With the sacrum alone as frame, its size is a poor proxy of the
+            pelvis's, and keeping mm (rigid) lets the model learn the relation instead.
 
         Raises
         ------
@@ -150,7 +158,7 @@ class PoseModel:
 
         # 1. global frame from the frame bones
         frame_pts = V[:, fidx].reshape(n, -1, 3)
-        gpa = generalized_procrustes(frame_pts, scale=True)
+        gpa = generalized_procrustes(frame_pts, scale=frame_scale)
         normalised = tf.apply(gpa.transforms[:, None], V)  # (n, 3, nv, 3)
 
         # 2. local poses against each bone's mean shape (centred)
@@ -184,6 +192,7 @@ class PoseModel:
             modes=vt[:keep].T.copy(),
             variances=variances[:keep].copy(),
             training=X,
+            frame_scale=frame_scale,
         )
 
     # ---- frames and tangent vectors ---------------------------------------------------------
@@ -201,7 +210,7 @@ class PoseModel:
             raise ValueError(
                 f"frame vertices for {self.frame_bones} must have shape {expected}, got {x.shape}"
             )
-        return fit_transform(x.reshape(-1, 3), self.frame_reference, scale=True)
+        return fit_transform(x.reshape(-1, 3), self.frame_reference, scale=self.frame_scale)
 
     def tangent(self, bone: str, normalised_vertices: ArrayLike) -> NDArray[np.float64]:
         """Scaled tangent 7-vector of one bone given its vertices in the normalised frame."""

@@ -38,6 +38,7 @@ from pelvicnav.pose.collision import (
     subject_joint_gaps,
     vertex_normals,
 )
+from pelvicnav.pose.joint_space import JointSpaceModel, subject_plane_gaps
 from pelvicnav.pose.spm import BONES, PoseModel, check_bones
 
 __all__ = ["TargetEstimate", "TargetPlanner", "solve_weights"]
@@ -129,6 +130,8 @@ class TargetPlanner:
         Joint surfaces found on the mean shapes at their mean poses.
     min_gap : dict
         Minimum joint space (mm) per ``(joint, moving bone)``, from the training subjects.
+    joint_space : JointSpaceModel
+        Learned contact offsets and joint spaces for the joint-space refinement.
     prior : float
         Tikhonov weight of equation 8a.
     """
@@ -137,6 +140,7 @@ class TargetPlanner:
     faces: tuple[NDArray[np.int64], ...]
     joints: dict[tuple[str, str], JointSurface]
     min_gap: dict[tuple[tuple[str, str], str], float]
+    joint_space: JointSpaceModel
     prior: float = 1.0
     gap_quantile: float = 0.05
 
@@ -162,6 +166,10 @@ class TargetPlanner:
         gap_quantile: float = 0.05,
         gap_percentile: float = 10.0,
         training_gaps: ArrayLike | None = None,
+        training_plane_gaps: ArrayLike | None = None,
+        spm_weight: float = 0.3,
+        joint_prior: float = 0.01,
+        frame_scale: bool | None = None,
     ) -> TargetPlanner:
         """Fit the SPM for ``observed`` bones and calibrate the collision refinement.
 
@@ -182,6 +190,13 @@ class TargetPlanner:
         training_gaps : (n_subjects, 3, 2, n_vertices) float, optional
             :func:`subject_joint_gaps` of each training subject, if already computed (they depend
             on each subject alone, so a cross-validation can compute them once).
+        training_plane_gaps : (n_subjects, 3, 2, n_vertices) float, optional
+            :func:`~pelvicnav.pose.joint_space.subject_plane_gaps` of each training subject.
+        spm_weight, joint_prior : float
+            Joint-space refinement weights (see :class:`JointSpaceModel`).
+        frame_scale : bool, optional
+            Similarity (True) or rigid (False) global frame; default: similarity when two bones
+            are observed, rigid when only one is (its size alone predicts the pelvis's poorly).
 
         Raises
         ------
@@ -196,7 +211,11 @@ class TargetPlanner:
         if prior < 0:
             raise ValueError(f"prior must be >= 0, got {prior}")
         V = np.asarray(vertices, dtype=np.float64)
-        model = PoseModel.fit(V, frame_bones=observed, n_modes=n_modes, metric=metric)
+        if frame_scale is None:
+            frame_scale = len(observed) > 1
+        model = PoseModel.fit(
+            V, frame_bones=observed, n_modes=n_modes, metric=metric, frame_scale=frame_scale
+        )
         fcs = tuple(np.asarray(f, dtype=np.int64) for f in faces)
         if len(fcs) != 3:
             raise ValueError(f"faces for 3 bones are needed, got {len(fcs)}")
@@ -225,11 +244,27 @@ class TargetPlanner:
                 min_gap[(pair, mover)] = (
                     float(np.percentile(per_subject, gap_percentile)) if per_subject else 0.0
                 )
+        plane = (
+            np.stack([subject_plane_gaps(V[n], fcs) for n in range(V.shape[0])])
+            if training_plane_gaps is None
+            else np.asarray(training_plane_gaps, dtype=np.float64)
+        )
+        dislocated = tuple(b for b in BONES if b not in observed)
+        joint_space = JointSpaceModel.fit(
+            V,
+            placed,
+            joints,
+            plane,
+            movers=dislocated,
+            spm_weight=spm_weight,
+            prior_weight=joint_prior,
+        )
         return cls(
             model=model,
             faces=fcs,
             joints=joints,
             min_gap=min_gap,
+            joint_space=joint_space,
             prior=prior,
             gap_quantile=gap_quantile,
         )
@@ -239,7 +274,7 @@ class TargetPlanner:
         observed: Mapping[str, ArrayLike],
         current: Mapping[str, ArrayLike],
         *,
-        collision: bool = True,
+        refine: str = "joint",
         method: str = "trust-ncg",
     ) -> dict[str, TargetEstimate]:
         """Target poses of the dislocated bones.
@@ -251,8 +286,13 @@ class TargetPlanner:
         current : mapping bone -> (n_vertices, 3) float, mm
             Segmented meshes of the dislocated bones where they are now; exactly
             :attr:`dislocated`.
-        collision : bool
-            Apply the joint-collision refinement (SPM_CC) or not (SPM).
+        refine : {"joint", "collision", "none"}
+            ``"none"``: plain SPM. ``"collision"``: the paper's SPM_CC refinement (smallest
+            translation along the joint normal that removes overlap). ``"joint"`` (default): the
+            joint-space refinement (:mod:`pelvicnav.pose.joint_space`) followed by the collision
+            check.
+        method : str
+            Solver of equation 8a (see :func:`solve_weights`).
 
         Returns
         -------
@@ -270,18 +310,36 @@ class TargetPlanner:
             b_obs - m.mean[rows], m.modes[rows], m.variances, prior=self.prior, method=method
         )
         poses = m.poses_from_vector(m.mean + m.modes @ v)
-        out = {}
-        for bone in self.dislocated:
-            lb = BONES.index(bone)
-            predicted = tf.apply(subject_from_normalised @ poses[lb], m.mean_shapes[lb])
-            T = fit_transform(cur[bone], predicted, scale=False)
-            out[bone] = TargetEstimate(
-                bone=bone,
-                target_from_current=T,
-                vertices=tf.apply(T, cur[bone]),
-                predicted_mean=predicted,
+        if refine not in ("joint", "collision", "none"):
+            raise ValueError(f"refine must be 'joint', 'collision' or 'none', got {refine!r}")
+        predicted = {
+            bone: tf.apply(
+                subject_from_normalised @ poses[BONES.index(bone)], m.mean_shapes[BONES.index(bone)]
             )
-        if collision:
+            for bone in self.dislocated
+        }
+        T = {bone: fit_transform(cur[bone], predicted[bone], scale=False) for bone in cur}
+        if refine == "joint":
+            faces = {b: self.faces[BONES.index(b)] for b in BONES}
+            # Bilateral cases seat each hip against the sacrum and the other hip's current
+            # estimate, twice round; unilateral cases need one pass.
+            for _ in range(2 if len(cur) > 1 else 1):
+                for bone in cur:
+                    partners = dict(obs)
+                    partners.update({b: tf.apply(T[b], cur[b]) for b in cur if b != bone})
+                    T[bone] = self.joint_space.refine(
+                        bone, cur[bone], predicted[bone], partners, faces
+                    )
+        out = {
+            bone: TargetEstimate(
+                bone=bone,
+                target_from_current=T[bone],
+                vertices=tf.apply(T[bone], cur[bone]),
+                predicted_mean=predicted[bone],
+            )
+            for bone in self.dislocated
+        }
+        if refine in ("joint", "collision"):
             out = self._refine(out, obs)
         return out
 
