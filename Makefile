@@ -8,7 +8,7 @@ export OMP_WAIT_POLICY ?= passive
 export OPENBLAS_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: venv test lint demo bench clean
+.PHONY: venv test lint demo bench study-target-pose clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -32,5 +32,9 @@ bench: $(STAMP)
 	mkdir -p benchmarks/results
 	$(BIN)/python -m benchmarks.run --out benchmarks/results
 
+# The full leave-one-out target-pose study on the real atlas (about 1.5 min on 2 cores).
+study-target-pose: $(STAMP)
+	$(BIN)/pelvicnav study target-pose --out studies-output/target-pose --workers 2
+
 clean:
-	rm -rf $(VENV) demo-output .pytest_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) demo-output studies-output .pytest_cache .ruff_cache .hypothesis

@@ -82,3 +82,32 @@ def test_demo_with_atlas_writes_figure(tiny_atlas, tmp_path):
     png = out / "atlas_projection.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert os.path.getsize(png) > 10_000
+
+
+def test_study_commands_report_missing_atlas(tmp_path, monkeypatch):
+    monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    for args in (
+        ["study", "target-pose", "--out", str(tmp_path / "o")],
+        ["study", "spm-modes", "--out", str(tmp_path / "m.png")],
+        ["study", "ssm-reference"],
+    ):
+        res = runner.invoke(app, args)
+        assert res.exit_code == 2, args
+        assert "no pelvis atlas" in res.output
+    res = runner.invoke(
+        app, ["study", "target-pose", "--out", str(tmp_path / "o"), "--segmentation", "asm"]
+    )
+    assert res.exit_code == 2
+    assert "not available yet" in res.output
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.atlas
+def test_spm_modes_figure_on_real_atlas(real_atlas_path, tmp_path):
+    out = tmp_path / "modes.png"
+    res = runner.invoke(
+        app, ["study", "spm-modes", "--atlas", str(real_atlas_path), "--out", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    assert out.read_bytes()[:4] == b"\x89PNG"

@@ -149,7 +149,6 @@ def study_target_pose(
     from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
     from pelvicnav.studies.target_pose import (
         PAPER_MEDIANS,
-        SUMMARY_FIELDS,
         TargetPoseSettings,
         run_target_pose_study,
     )
@@ -176,11 +175,24 @@ def study_target_pose(
 
     with open(out / "summary.csv") as fh:
         summary = list(csv.DictReader(fh))
-    table = Table(*SUMMARY_FIELDS[:7], "paper (mm / deg)", title=f"target pose ({out})")
+    table = Table(
+        "method", "dislocated", "n", "translation mm (IQR)", "rotation deg (IQR)", "paper",
+        title=f"target pose, leave-one-out ({out})",
+    )  # fmt: skip
     for row in summary:
         paper = PAPER_MEDIANS.get(row["method"])
+        if not row["translation_median_mm"]:
+            cells = ("-", "-")
+        else:
+            t, ti = float(row["translation_median_mm"]), float(row["translation_iqr_mm"])
+            r, ri = float(row["rotation_median_deg"]), float(row["rotation_iqr_deg"])
+            cells = (f"{t:.2f} ({ti:.2f})", f"{r:.2f} ({ri:.2f})")
         table.add_row(
-            *(row[k] for k in SUMMARY_FIELDS[:7]), f"{paper[0]} / {paper[1]}" if paper else ""
+            row["method"],
+            row["dislocated_bone"],
+            row["n"],
+            *cells,
+            f"{paper[0]} / {paper[1]}" if paper else "",
         )
     Console().print(table)
 

@@ -236,7 +236,7 @@ def refine_translation(
     direction: ArrayLike,
     *,
     min_gap: float,
-    max_shift: float = 10.0,
+    max_shift: float = 3.0,
     tol: float = 0.01,
     quantile: float = 0.05,
 ) -> float:
@@ -252,11 +252,16 @@ def refine_translation(
         Required joint space.
     quantile : float
         The ``quantile``-th lowest gap must reach ``min_gap`` (robust to a few stray rays).
+    max_shift : float, mm
+        Largest correction considered. An overlap that this cannot clear is taken as the meshes'
+        own interpenetration at the joint (segmented surfaces of the sacroiliac joint often
+        overlap), not a pose error, and left alone.
 
     Returns
     -------
     float
-        ``delta`` in mm (0 when the joint is already clear; ``max_shift`` if never reached).
+        ``delta`` in mm (0 when the joint is already clear or cannot be cleared within
+        ``max_shift``).
     """
     u = np.asarray(direction, dtype=np.float64)
 
@@ -269,7 +274,7 @@ def refine_translation(
         return 0.0
     lo, hi = 0.0, max_shift
     if clearance(hi) < min_gap:
-        return max_shift
+        return 0.0
     while hi - lo > tol:
         mid = 0.5 * (lo + hi)
         if clearance(mid) >= min_gap:

@@ -41,6 +41,7 @@ def subject_plane_gaps(
     faces: tuple[ArrayLike, ArrayLike, ArrayLike],
     *,
     near_distance: float = 25.0,
+    vertex_sets: dict[tuple[int, int], ArrayLike] | None = None,
 ) -> NDArray[np.float64]:
     """Point-to-plane distance from every vertex to the partner bone of each joint, one subject.
 
@@ -51,7 +52,8 @@ def subject_plane_gaps(
     Returns
     -------
     (3, 2, n_vertices) float64, mm
-        NaN for vertices further than ``near_distance`` from the partner.
+        NaN for vertices further than ``near_distance`` from the partner, and for vertices outside
+        ``vertex_sets[(joint, side)]`` when those are given (only they are computed).
     """
     from scipy.spatial import cKDTree
 
@@ -63,11 +65,16 @@ def subject_plane_gaps(
         for side in range(2):
             this, other = BONES.index(pair[side]), BONES.index(pair[1 - side])
             # Only vertices near the joint matter; the distance bound keeps the queries cheap.
-            d, j = trees[other].query(V[this], distance_upper_bound=near_distance)
+            sel = (
+                np.arange(V.shape[1])
+                if vertex_sets is None
+                else np.asarray(vertex_sets[(k, side)], dtype=np.int64)
+            )
+            d, j = trees[other].query(V[this][sel], distance_upper_bound=near_distance)
             near = np.isfinite(d)
             jn = j[near]
-            out[k, side, near] = np.einsum(
-                "ij,ij->i", normals[other][jn], V[this][near] - V[other][jn]
+            out[k, side, sel[near]] = np.einsum(
+                "ij,ij->i", normals[other][jn], V[this][sel[near]] - V[other][jn]
             )
     return out
 
@@ -100,12 +107,19 @@ class JointSpaceModel:
         Weight of the SPM prediction against the contact targets in the starting fit.
     prior_weight : float
         Weight of the pull towards the start during the point-to-plane iterations.
+    max_motion : (float, float)
+        Trust region of the point-to-plane stage: it may move the bone at most this far from the
+        contact start (mm at the centroid, degrees); an update that would leave it stops there.
+    max_pair_distance : float, mm
+        Point-to-plane pairs further apart than this are ignored in an iteration.
     """
 
     sides: dict[tuple[tuple[str, str], str], _Side]
     spm_weight: float = 0.3
     prior_weight: float = 0.01
     region_radius: float = 30.0
+    max_motion: tuple[float, float] = (6.0, 6.0)
+    max_pair_distance: float = 10.0
 
     @classmethod
     def fit(
@@ -119,6 +133,8 @@ class JointSpaceModel:
         spm_weight: float = 0.3,
         prior_weight: float = 0.01,
         region_radius: float = 30.0,
+        max_motion: tuple[float, float] = (6.0, 6.0),
+        max_pair_distance: float = 10.0,
     ) -> JointSpaceModel:
         """Learn contact offsets and joint spaces from a training population.
 
@@ -188,6 +204,8 @@ class JointSpaceModel:
             spm_weight=spm_weight,
             prior_weight=prior_weight,
             region_radius=region_radius,
+            max_motion=max_motion,
+            max_pair_distance=max_pair_distance,
         )
 
     def refine(
@@ -240,15 +258,18 @@ class JointSpaceModel:
             normals = vertex_normals(Y, partner_faces[s.partner])
             geo.append((s, Y, normals, cKDTree(Y)))
         T = T0
+        centroid = start.mean(axis=0)
         sw_prior = np.sqrt(self.prior_weight / n_v)
         for _ in range(max_iter):
             rows, rhs = [], []
             for s, Y, normals, tree in geo:
                 p = tf.apply(T, X[s.vertices])
-                _, j = tree.query(p)
+                dist, j = tree.query(p)
                 nrm = normals[j]
                 r = np.einsum("ij,ij->i", nrm, p - Y[j]) - s.plane_gap
-                sw = np.sqrt(s.plane_weights)
+                # Pairs further apart than a joint space can be are not across the joint (ICP
+                # outlier rejection); they would drag the bone along the surface.
+                sw = np.sqrt(np.where(dist < self.max_pair_distance, s.plane_weights, 0.0))
                 rows.append(np.hstack([nrm, np.cross(p, nrm)]) * sw[:, None])
                 rhs.append(-r * sw)
             p = tf.apply(T, X)
@@ -258,7 +279,13 @@ class JointSpaceModel:
             rows.append(J.reshape(-1, 6) * sw_prior)
             rhs.append(-(p - start).reshape(-1) * sw_prior)
             delta = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
-            T = tf.from_params(delta[:3], delta[3:]) @ T
+            T_new = tf.from_params(delta[:3], delta[3:]) @ T
+            moved = T_new @ tf.invert(T0)
+            shift = np.linalg.norm(tf.apply(moved, centroid[None])[0] - centroid)
+            angle = np.degrees(np.linalg.norm(tf.rotvec_from_matrix(moved[:3, :3])))
+            if shift > self.max_motion[0] or angle > self.max_motion[1]:
+                break
+            T = T_new
             if np.linalg.norm(delta) < tol:
                 break
         return T

@@ -34,8 +34,8 @@ from pelvicnav.pose.collision import (
     JointSurface,
     find_joint_surfaces,
     joint_gaps,
+    ray_triangle_distances,
     refine_translation,
-    subject_joint_gaps,
     vertex_normals,
 )
 from pelvicnav.pose.joint_space import JointSpaceModel, subject_plane_gaps
@@ -222,7 +222,7 @@ class TargetPlanner:
         placed = tf.apply(model.mean_poses, model.mean_shapes)
         joints = find_joint_surfaces(placed, fcs, max_distance=joint_distance)
         gaps = (
-            np.stack([subject_joint_gaps(V[n], fcs) for n in range(V.shape[0])])
+            _joint_set_gaps(V, fcs, joints)
             if training_gaps is None
             else np.asarray(training_gaps, dtype=np.float64)
         )
@@ -245,10 +245,25 @@ class TargetPlanner:
                     float(np.percentile(per_subject, gap_percentile)) if per_subject else 0.0
                 )
         plane = (
-            np.stack([subject_plane_gaps(V[n], fcs) for n in range(V.shape[0])])
+            np.stack(
+                [
+                    subject_plane_gaps(
+                        V[n],
+                        fcs,
+                        vertex_sets={
+                            (k, side): joints[pair].vertices[side]
+                            for k, pair in enumerate(JOINTS)
+                            for side in range(2)
+                        },
+                    )
+                    for n in range(V.shape[0])
+                ]
+            )
             if training_plane_gaps is None
             else np.asarray(training_plane_gaps, dtype=np.float64)
         )
+        if plane.shape != gaps.shape:
+            raise ValueError(f"training_plane_gaps must have shape {gaps.shape}, got {plane.shape}")
         dislocated = tuple(b for b in BONES if b not in observed)
         joint_space = JointSpaceModel.fit(
             V,
@@ -350,7 +365,7 @@ class TargetPlanner:
         shifts = {b: np.zeros(3) for b in est}
         # Joints between a dislocated bone and an observed one: move the dislocated bone.
         # Joints between two dislocated bones (bilateral): move both, half each.
-        for _ in range(3):
+        for _ in range(2):
             changed = False
             for pair, joint in self.joints.items():
                 movers = [b for b in pair if b in est]
@@ -416,6 +431,23 @@ def _gaps_between(joint, mover, other, moving_v, fixed_v, faces) -> NDArray[np.f
         faces[BONES.index(other)],
         joint.faces[joint.side(other)],
     )
+
+
+def _joint_set_gaps(V: NDArray, faces: tuple, joints: dict) -> NDArray[np.float64]:
+    """Ray-cast joint gaps of training subjects, on the joint vertex sets only (fast path)."""
+    out = np.full((V.shape[0], len(JOINTS), 2, V.shape[2]), np.nan)
+    for n in range(V.shape[0]):
+        normals = [vertex_normals(V[n, l], faces[l]) for l in range(3)]
+        for k, pair in enumerate(JOINTS):
+            joint = joints[pair]
+            for side, mover in enumerate(pair):
+                this, other = BONES.index(mover), BONES.index(pair[1 - side])
+                idx = joint.vertices[side]
+                tris = V[n, other][faces[other][joint.faces[1 - side]]]
+                out[n, k, side, idx] = ray_triangle_distances(
+                    V[n, this][idx], normals[this][idx], tris
+                )
+    return out
 
 
 def _check_meshes(
