@@ -111,3 +111,11 @@ def test_spm_modes_figure_on_real_atlas(real_atlas_path, tmp_path):
     )
     assert res.exit_code == 0, res.output
     assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.atlas
+def test_demo_plans_a_reduction_on_the_real_atlas(real_atlas_path, tmp_path):
+    res = runner.invoke(app, ["demo", "--out", str(tmp_path), "--atlas", str(real_atlas_path)])
+    assert res.exit_code == 0, res.output
+    assert "SPM_CC  target error" in res.output
+    assert (tmp_path / "target_pose.png").read_bytes()[:4] == b"\x89PNG"

@@ -22,7 +22,7 @@ def _views() -> dict[str, pj.CArm]:
 
 
 def run_demo(out: Path, *, atlas: str | os.PathLike | None = None) -> None:
-    """Print the C-arm geometry and, when an atlas is available, project a pelvis into views."""
+    """Print the C-arm geometry; with an atlas, project a pelvis into views and plan a reduction."""
     from rich.console import Console
     from rich.table import Table
 
@@ -65,6 +65,64 @@ def run_demo(out: Path, *, atlas: str | os.PathLike | None = None) -> None:
     path = out / "atlas_projection.png"
     _projection_figure(a, views, path)
     console.print(f"wrote {path}")
+    if a.n_subjects < 10:
+        console.print(f"[yellow]planning demo skipped: {a.n_subjects} subjects is too few[/]")
+        return
+    _planning_demo(a, out, console)
+
+
+def _planning_demo(a, out: Path, console) -> None:
+    """Dislocate subject 1's left hip and estimate its target pose from models of the others."""
+    from pelvicnav.pose.target import TargetPlanner
+    from pelvicnav.studies.target_pose import pose_errors, random_dislocation
+
+    V = a.vertices
+    truth = V[0, 1]
+    D, dmm, ddeg = random_dislocation(np.random.default_rng(1), truth.mean(axis=0), 20.0, 10.0)
+    current = tf.apply(D, truth)
+    planner = TargetPlanner.fit(V[1:], a.faces, observed=("sacrum", "right_hip"))
+    observed = {"sacrum": V[0, 0], "right_hip": V[0, 2]}
+    console.print(
+        f"plan: subject {a.subject_ids[0]}'s left hip dislocated by {dmm:.1f} mm / {ddeg:.1f} deg; "
+        f"models from the other {a.n_subjects - 1} subjects"
+    )
+    estimates = {}
+    for name, refine in (("SPM", "none"), ("SPM_CC", "joint")):
+        est = planner.estimate(observed, {"left_hip": current}, refine=refine)["left_hip"]
+        t, r, _ = pose_errors(truth, est.vertices)
+        estimates[name] = est.vertices
+        console.print(f"  {name:7s} target error {t:.2f} mm, {r:.2f} deg")
+    _planning_figure(V[0], current, estimates["SPM_CC"], out / "target_pose.png")
+    console.print(f"wrote {out / 'target_pose.png'}")
+
+
+def _planning_figure(subject, current, target, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    sub = slice(None, None, 4)
+    for pts, colour, label in (
+        (subject[0], "0.5", "sacrum"),
+        (subject[2], "0.5", "right hip"),
+        (current, "tab:red", "left hip, dislocated"),
+        (subject[1], "k", "left hip, truth"),
+        (target, "tab:green", "left hip, SPM_CC target"),
+    ):
+        ax.scatter(pts[sub, 0], pts[sub, 2], s=0.6, c=colour, label=label, alpha=0.5)
+    ax.set_aspect("equal")
+    # Radiological display: x (towards the patient's left) increases to the right of the page.
+    ax.set_xlabel("x (mm, LPS; patient's right on the page's left)")
+    ax.set_ylabel("z (mm, superior)")
+    ax.legend(markerscale=8, fontsize=8, loc="lower right")
+    ax.set_title("Target reduction pose (coronal projection)")
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".part.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    os.replace(tmp, path)
 
 
 def _projection_figure(a, views: dict[str, pj.CArm], path: Path) -> None:
