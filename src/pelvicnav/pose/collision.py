@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 __all__ = [
     "JOINTS",
     "JointSurface",
+    "as_gap_array",
     "find_joint_surfaces",
     "joint_gaps",
     "ray_triangle_distances",
@@ -34,6 +35,15 @@ JOINTS: tuple[tuple[str, str], ...] = (
     ("sacrum", "right_hip"),
     ("left_hip", "right_hip"),
 )
+
+
+def as_gap_array(gaps, n_subjects: int, n_vertices: int, name: str) -> NDArray[np.float64]:
+    """Validate per-subject joint-gap arrays: ``(n_subjects, 3 joints, 2 sides, n_vertices)``."""
+    g = np.asarray(gaps, dtype=np.float64)
+    expected = (n_subjects, len(JOINTS), 2, n_vertices)
+    if g.shape != expected:
+        raise ValueError(f"{name} must have shape {expected}, got {g.shape}")
+    return g
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.geometry.procrustes import fit_transform
-from pelvicnav.pose.collision import JOINTS, JointSurface, vertex_normals
+from pelvicnav.pose.collision import JOINTS, JointSurface, as_gap_array, vertex_normals
 
 __all__ = ["JointSpaceModel", "subject_plane_gaps"]
 
@@ -154,12 +154,7 @@ class JointSpaceModel:
 
         V = np.asarray(vertices, dtype=np.float64)
         M = np.asarray(placed_means, dtype=np.float64)
-        G = np.asarray(plane_gaps, dtype=np.float64)
-        if G.shape != (V.shape[0], len(JOINTS), 2, V.shape[2]):
-            raise ValueError(
-                f"plane_gaps must have shape {(V.shape[0], len(JOINTS), 2, V.shape[2])}, "
-                f"got {G.shape}"
-            )
+        G = as_gap_array(plane_gaps, V.shape[0], V.shape[2], "plane_gaps")
         sides = {}
         for k, pair in enumerate(JOINTS):
             joint = joints[pair]

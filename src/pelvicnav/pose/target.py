@@ -32,6 +32,7 @@ from pelvicnav.geometry.procrustes import fit_transform
 from pelvicnav.pose.collision import (
     JOINTS,
     JointSurface,
+    as_gap_array,
     find_joint_surfaces,
     joint_gaps,
     ray_triangle_distances,
@@ -224,13 +225,8 @@ class TargetPlanner:
         gaps = (
             _joint_set_gaps(V, fcs, joints)
             if training_gaps is None
-            else np.asarray(training_gaps, dtype=np.float64)
+            else as_gap_array(training_gaps, V.shape[0], V.shape[2], "training_gaps")
         )
-        if gaps.shape != (V.shape[0], len(JOINTS), 2, V.shape[2]):
-            raise ValueError(
-                f"training_gaps must have shape {(V.shape[0], len(JOINTS), 2, V.shape[2])}, "
-                f"got {gaps.shape}"
-            )
         min_gap = {}
         for k, pair in enumerate(JOINTS):
             joint = joints[pair]
@@ -260,10 +256,8 @@ class TargetPlanner:
                 ]
             )
             if training_plane_gaps is None
-            else np.asarray(training_plane_gaps, dtype=np.float64)
+            else as_gap_array(training_plane_gaps, V.shape[0], V.shape[2], "training_plane_gaps")
         )
-        if plane.shape != gaps.shape:
-            raise ValueError(f"training_plane_gaps must have shape {gaps.shape}, got {plane.shape}")
         dislocated = tuple(b for b in BONES if b not in observed)
         joint_space = JointSpaceModel.fit(
             V,
