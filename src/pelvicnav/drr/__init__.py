@@ -1,0 +1,1 @@
+"""Digitally reconstructed radiographs: bone volume models and a batched forward projector."""
