@@ -1,0 +1,1 @@
+"""Simulation: CT synthesis, dislocations, radiographs (the test bench with ground truth)."""
