@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -119,3 +120,50 @@ def test_demo_plans_a_reduction_on_the_real_atlas(real_atlas_path, tmp_path):
     assert res.exit_code == 0, res.output
     assert "SPM_CC  target error" in res.output
     assert (tmp_path / "target_pose.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_simulate_bad_input(tiny_atlas, tmp_path):
+    out = tmp_path / "case"
+    base = ["simulate", "--atlas", str(tiny_atlas), "--out", str(out)]
+    for args, message in (
+        (["--subject", "99"], "unknown subject id 99"),
+        (["--subject", "1", "--dose", "0"], "dose must be a positive"),
+        (["--subject", "1", "--views", "ap,sideways"], "unknown view 'sideways'"),
+        (["--subject", "1", "--pattern", "twist"], "unknown dislocation pattern 'twist'"),
+        (["--subject", "1", "--bone", "sacrum"], "only an innominate"),
+    ):
+        res = runner.invoke(app, base + args)
+        assert res.exit_code == 2, (args, res.output)
+        assert message in res.output
+        assert not out.exists()
+
+
+@pytest.mark.atlas
+@pytest.mark.slow
+def test_simulate_writes_a_case(real_atlas_path, tmp_path):
+    import numpy as np
+
+    from pelvicnav.geometry import transforms as tf
+    from pelvicnav.io.nifti import read_nifti
+    from pelvicnav.io.views import read_views
+
+    out = tmp_path / "case"
+    res = runner.invoke(
+        app,
+        ["simulate", "--atlas", str(real_atlas_path), "--subject", "10", "--out", str(out),
+         "--dose", "5", "--views", "ap,inlet", "--seed", "3"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    views, dof = read_views(out / "views.json")
+    assert [v.name for v in views] == ["ap", "inlet"]
+    assert dof == 6
+    ct, A = read_nifti(out / "ct.nii.gz")
+    labels, _ = read_nifti(out / "labels.nii.gz")
+    assert ct.shape == labels.shape
+    assert set(np.unique(labels)) == {0, 1, 2, 3}
+    truth = json.loads((out / "truth.json").read_text())
+    D = np.array(truth["poses_world_from_ct"]["left_hip"])
+    moved = np.linalg.norm(tf.se3_log(D))  # a real (rigid) dislocation, not the identity
+    assert moved > 0.1
+    np.testing.assert_allclose(truth["poses_world_from_ct"]["sacrum"], np.eye(4))
+    assert truth["dislocation"]["pattern"] == "open-book"

@@ -248,6 +248,57 @@ def study_ssm_reference(atlas: AtlasOption = None) -> None:
     Console().print(table)
 
 
+@app.command("simulate")
+def simulate(
+    subject: Annotated[int, typer.Option(help="Atlas subject id.")],
+    out: Annotated[Path, typer.Option(help="Output folder.")],
+    atlas: AtlasOption = None,
+    pattern: Annotated[str, typer.Option(help="si, ps or open-book.")] = "open-book",
+    bone: Annotated[
+        str, typer.Option(help="Dislocated innominate: left_hip or right_hip.")
+    ] = "left_hip",
+    dose: Annotated[
+        float, typer.Option(help="uGy/frame at the isocentre (50 nominal, 0.5 lowest).")
+    ] = 50.0,
+    views: Annotated[
+        str,
+        typer.Option(
+            help="Comma-separated: ap, lateral, inlet, outlet, iliac, obturator, oblique30."
+        ),
+    ] = "ap,oblique30",
+    seed: Annotated[int, typer.Option(help="Seed of everything random in the case.")] = 0,
+) -> None:
+    """Simulate a dislocated patient: CT, label map, radiographs and ground truth."""
+    from rich.console import Console
+
+    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.phantom.case import simulate_case
+
+    console = Console()
+    try:
+        try:
+            a = load_atlas(atlas)
+        except AtlasNotFoundError as err:
+            raise ValueError(
+                f"{err} (the built-in procedural population is not available yet, so simulate "
+                "needs the atlas)"
+            ) from None
+        vertices = a.vertices[a.subject_index(subject)]
+        with console.status(f"simulating subject {subject} ({pattern}, {dose} uGy/frame)"):
+            truth = simulate_case(
+                vertices, a.faces, out, subject_id=subject, pattern=pattern, bone=bone,
+                dose_ugy=dose, views=tuple(v.strip() for v in views.split(",") if v.strip()),
+                seed=seed,
+            )  # fmt: skip
+    except ValueError as err:
+        raise _fail(str(err)) from None
+    d = truth["dislocation"]
+    console.print(
+        f"wrote {out}: {d['pattern']} dislocation of {d['bone']} "
+        f"({d['translation_mm']:.1f} mm, {d['rotation_deg']:.1f} deg), views {views}"
+    )
+
+
 @app.command("demo")
 def demo(
     out: Annotated[Path, typer.Option(help="Folder for the demo's figures.")] = Path("demo-output"),

@@ -183,8 +183,14 @@ def femoral_head(
         if sel.sum() < 20:
             break
         c, r = _fit_sphere(V[sel])
-    if not radius_range[0] <= r <= radius_range[1] + 3:
-        raise ValueError(f"no acetabulum found: best sphere radius {r:.1f} mm is implausible")
+    # The cup must be concave towards the centre: enough vertices on the sphere facing it.
+    d = np.linalg.norm(V - c, axis=1)
+    towards = np.einsum("ij,ij->i", N, (c - V) / np.maximum(d, 1e-9)[:, None])
+    support = int(np.sum((towards > 0.8) & (np.abs(d - r) < 3.0)))
+    if not radius_range[0] <= r <= radius_range[1] + 3 or support < 30:
+        raise ValueError(
+            f"no acetabulum found: best sphere radius {r:.1f} mm with {support} supporting vertices"
+        )
     return c, r
 
 

@@ -1,0 +1,58 @@
+"""NIfTI volumes in pelvicnav's LPS world: ``world_from_ijk`` <-> the file's RAS affine.
+
+NIfTI stores a RAS affine; pelvicnav works in LPS. The two differ by ``diag(-1, -1, 1)``:
+``ras_from_ijk = diag(-1, -1, 1, 1) @ world_from_ijk``. Writes are atomic.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["LPS_TO_RAS", "read_nifti", "write_nifti"]
+
+LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def write_nifti(path: str | os.PathLike, data: ArrayLike, world_from_ijk: ArrayLike) -> Path:
+    """Write a volume (``data[i, j, k]``) with its LPS ``world_from_ijk`` as NIfTI-1."""
+    import nibabel as nib
+
+    path = Path(path)
+    A = np.asarray(world_from_ijk, dtype=np.float64)
+    if A.shape != (4, 4):
+        raise ValueError(f"world_from_ijk must be (4, 4), got {A.shape}")
+    img = nib.Nifti1Image(np.asarray(data), LPS_TO_RAS @ A)
+    img.set_qform(LPS_TO_RAS @ A, code=1)
+    img.set_sform(LPS_TO_RAS @ A, code=1)
+    suffix = ".nii.gz" if path.name.endswith(".nii.gz") else path.suffix
+    tmp = path.with_name(path.name[: -len(suffix)] + ".part" + suffix)
+    nib.save(img, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def read_nifti(path: str | os.PathLike) -> tuple[NDArray, NDArray[np.float64]]:
+    """Read ``(data, world_from_ijk)`` (LPS) from a NIfTI file.
+
+    Raises
+    ------
+    ValueError
+        Unreadable file or not a 3D volume, naming the file.
+    """
+    import nibabel as nib
+
+    path = Path(path)
+    try:
+        img = nib.load(path)
+        data = np.asarray(img.dataobj)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: file not found") from None
+    except Exception as err:  # nibabel raises several types for corrupt files
+        raise ValueError(f"{path}: not a readable NIfTI file ({err})") from None
+    if data.ndim != 3:
+        raise ValueError(f"{path}: expected a 3D volume, got shape {data.shape}")
+    return data, LPS_TO_RAS @ np.asarray(img.affine, dtype=np.float64)

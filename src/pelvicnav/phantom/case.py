@@ -1,0 +1,134 @@
+"""One simulated patient: CT, dislocation, radiographs and ground truth, written to a folder.
+
+``simulate_case`` is what ``pelvicnav simulate`` runs. Outputs (all written to a temporary folder
+and moved into place only when everything succeeded):
+
+* ``ct.nii.gz`` - the dislocated CT (HU), ``labels.nii.gz`` - its label map (1, 2, 3);
+* ``views.json`` + ``<view>.npy`` - radiographs (line integrals) and projection matrices;
+* ``truth.json`` - per-bone ``world_from_ct`` poses (the dislocated bone's is the dislocation),
+  the dislocation, the femoral heads and the C-arm parameters of every view.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = ["simulate_case"]
+
+BONES = ("sacrum", "left_hip", "right_hip")
+
+
+def simulate_case(
+    vertices: ArrayLike,
+    faces: tuple[ArrayLike, ...],
+    out: str | os.PathLike,
+    *,
+    subject_id: int,
+    pattern: str = "open-book",
+    bone: str = "left_hip",
+    dose_ugy: float = 50.0,
+    views: tuple[str, ...] = ("ap", "oblique30"),
+    seed: int = 0,
+    max_mm: float = 20.0,
+    max_deg: float = 10.0,
+    ct_options=None,
+) -> dict:
+    """Simulate a dislocated patient and its radiographs; returns the truth record.
+
+    Raises
+    ------
+    ValueError
+        Bad dose, pattern, bone or view name, or a view that misses the pelvis; nothing is
+        written then.
+    """
+    from pelvicnav.geometry import transforms as tf
+    from pelvicnav.io.nifti import write_nifti
+    from pelvicnav.io.views import View, write_views
+    from pelvicnav.phantom.ctsynth import synthesize_ct
+    from pelvicnav.phantom.dislocate import apply_dislocation, draw_dislocation
+    from pelvicnav.phantom.xray import (
+        DetectorModel,
+        quanta_per_pixel,
+        simulate_radiograph,
+        standard_view,
+    )
+
+    # Validate the cheap things before the expensive ones.
+    if not views:
+        raise ValueError("at least one view is needed")
+    carms = {name: standard_view(name) for name in views}
+    for carm in carms.values():
+        quanta_per_pixel(dose_ugy, carm, DetectorModel())  # raises on a bad dose
+    V = np.asarray(vertices, dtype=np.float64)
+    rng = np.random.default_rng([seed, subject_id])
+    disl = draw_dislocation(
+        V, faces, bone=bone, pattern=pattern, rng=rng, max_mm=max_mm, max_deg=max_deg
+    )
+    ct = synthesize_ct(V, faces, rng=rng, options=ct_options)
+    moved_ct, moved = apply_dislocation(ct, V, faces, disl, rng=rng)
+    isocenter = tuple(float(c) for c in V.reshape(-1, 3).mean(axis=0))
+    radiographs = []
+    for name in views:
+        carm = standard_view(name, isocenter=isocenter)
+        rad = simulate_radiograph(moved_ct.hu, carm, dose_ugy=dose_ugy, rng=rng)
+        radiographs.append(
+            View(
+                name=name,
+                image=rad.line_integrals,
+                projection_matrix=carm.projection_matrix,
+                pixel_spacing=carm.pixel_spacing,
+                meta={"dose_ugy": dose_ugy, "orbit_deg": carm.orbit_deg, "tilt_deg": carm.tilt_deg},
+            )
+        )
+    poses = {b: np.eye(4) for b in BONES}
+    poses[bone] = disl.transform
+    truth = {
+        "subject_id": int(subject_id),
+        "seed": int(seed),
+        "poses_world_from_ct": {b: T.tolist() for b, T in poses.items()},
+        "dislocation": {
+            "bone": disl.bone,
+            "pattern": disl.pattern,
+            "translation_mm": disl.translation_mm,
+            "rotation_deg": disl.rotation_deg,
+            "pivot_mm": disl.pivot.tolist(),
+            "attempts": disl.attempts,
+            "geodesic_6dof": tf.se3_log(disl.transform).tolist(),
+        },
+        "femoral_heads_mm": {
+            "left": ct.femoral_heads[0].tolist(),
+            "right": ct.femoral_heads[1].tolist(),
+        },
+        "views": {
+            name: {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(carm).items()}
+            | {"isocenter": list(isocenter)}
+            for name, carm in carms.items()
+        },
+        "dose_ugy": dose_ugy,
+        "note": "CT and label map are the dislocated patient; world_from_ct maps each bone of the "
+        "preoperative (undislocated) CT frame to this patient's frame.",
+    }
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
+    try:
+        hu_int16 = np.clip(np.round(moved_ct.hu.data), -32768, 32767).astype(np.int16)
+        write_nifti(tmp / "ct.nii.gz", hu_int16, moved_ct.hu.world_from_ijk)
+        write_nifti(tmp / "labels.nii.gz", moved_ct.labels, moved_ct.hu.world_from_ijk)
+        write_views(tmp, radiographs, degrees_of_freedom=6)
+        (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+        out.mkdir(parents=True, exist_ok=True)
+        for f in tmp.iterdir():
+            os.replace(f, out / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    truth["moved_vertices"] = moved
+    return truth
