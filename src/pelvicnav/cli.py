@@ -267,12 +267,14 @@ def simulate(
         ),
     ] = "ap,oblique30",
     seed: Annotated[int, typer.Option(help="Seed of everything random in the case.")] = 0,
+    beads: Annotated[int, typer.Option(help="Metal fiducial beads on the bones (for TRE).")] = 0,
 ) -> None:
     """Simulate a dislocated patient: CT, label map, radiographs and ground truth."""
     from rich.console import Console
 
     from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
     from pelvicnav.phantom.case import simulate_case
+    from pelvicnav.phantom.ctsynth import CTOptions
 
     console = Console()
     try:
@@ -288,7 +290,7 @@ def simulate(
             truth = simulate_case(
                 vertices, a.faces, out, subject_id=subject, pattern=pattern, bone=bone,
                 dose_ugy=dose, views=tuple(v.strip() for v in views.split(",") if v.strip()),
-                seed=seed,
+                seed=seed, ct_options=CTOptions(beads=beads),
             )  # fmt: skip
     except ValueError as err:
         raise _fail(str(err)) from None

@@ -116,6 +116,28 @@ def test_dislocation_is_collision_free_and_invertible(ellipsoid_subject, ellipso
         assert np.median(moved_ct.hu.data[vacated]) < 200
 
 
+def test_beads_move_with_their_bone(ellipsoid_subject):
+    V, faces = ellipsoid_subject
+    opts = CTOptions(femurs=False, bowel_gas=False, beads=8, margin_mm=NO_FEMURS.margin_mm)
+    ct = synthesize_ct(V, faces, rng=np.random.default_rng(3), options=opts)
+    A = ct.hu.world_from_ijk
+
+    def hu_at(points):
+        ijk = np.rint((points - A[:3, 3]) @ np.linalg.inv(A[:3, :3]).T).astype(int)
+        return ct_now.hu.data[tuple(ijk.T)]
+
+    ct_now = ct
+    assert ct.beads.shape == (8, 3)
+    assert np.all(hu_at(ct.beads) == 3000)
+    d = draw_dislocation(V, faces, pattern="ps", rng=np.random.default_rng(5), max_mm=8.0)
+    moved_ct, _ = apply_dislocation(ct, V, faces, d, rng=np.random.default_rng(6))
+    ct_now = moved_ct
+    on_left = ct.bead_bones == 2
+    np.testing.assert_allclose(moved_ct.beads[on_left], tf.apply(d.transform, ct.beads[on_left]))
+    np.testing.assert_array_equal(moved_ct.beads[~on_left], ct.beads[~on_left])
+    assert np.all(hu_at(moved_ct.beads) == 3000)
+
+
 def test_reduction_stages_interpolate_on_the_geodesic():
     D = tf.from_params([10.0, -4.0, 2.0], np.deg2rad([3.0, 5.0, -2.0]))
     S = reduction_stages(D, [0.0, 0.5, 1.0])

@@ -103,6 +103,12 @@ def simulate_case(
             "attempts": disl.attempts,
             "geodesic_6dof": tf.se3_log(disl.transform).tolist(),
         },
+        "beads_mm": {
+            "preoperative": ct.beads.tolist(),
+            "dislocated": moved_ct.beads.tolist(),
+            "bone_labels": ct.bead_bones.tolist(),
+            "radius_mm": ct.bead_radius,
+        },
         "femoral_heads_mm": {
             "left": ct.femoral_heads[0].tolist(),
             "right": ct.femoral_heads[1].tolist(),

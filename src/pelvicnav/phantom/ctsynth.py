@@ -21,7 +21,7 @@ soups and clouds", ACM TOG 37 (2018).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -33,6 +33,7 @@ __all__ = [
     "SynthCT",
     "bone_labels",
     "femoral_head",
+    "paint_beads",
     "synthesize_ct",
     "voxel_grid",
 ]
@@ -53,6 +54,9 @@ class CTOptions:
     cortical_mm, cortical_hu, cancellous_hu : (float, float)
         Ranges of cortical thickness, cortical HU and cancellous HU.
     femurs, bowel_gas, contrast : bool
+    beads : int
+        Metal fiducial beads (radius ``bead_radius_mm``, 3000 HU) glued to random points of the
+        bone surfaces, for target registration error as in the paper's phantom study.
     """
 
     spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)
@@ -63,6 +67,8 @@ class CTOptions:
     femurs: bool = True
     bowel_gas: bool = True
     contrast: bool = False
+    beads: int = 0
+    bead_radius_mm: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,11 +83,19 @@ class SynthCT:
         1 sacrum, 2 left innominate, 3 right innominate, 0 elsewhere (same grid as ``hu``).
     femoral_heads : (2, 4) float64
         Centre (mm) and radius (mm) of the left and right femoral heads.
+    beads : (n, 3) float64
+        Fiducial bead centres (mm), empty without beads.
+    bead_bones : (n,) int64
+        Label (1, 2, 3) of the bone each bead is glued to.
+    bead_radius : float
     """
 
     hu: Volume
     labels: NDArray[np.uint8]
     femoral_heads: NDArray[np.float64]
+    beads: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    bead_bones: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    bead_radius: float = 1.0
 
 
 def voxel_grid(
@@ -330,4 +344,52 @@ def synthesize_ct(
             depth[m] <= t_cort, c_hu + rng.normal(0, 40, m.sum()), cancellous[m]
         ).astype(np.float32)
         hu[box] = region
-    return SynthCT(hu=Volume(hu, A), labels=labels, femoral_heads=heads)
+    # --- fiducial beads on the bone surfaces (image only) -----------------------------------
+    beads = np.zeros((0, 3))
+    bead_bones = np.zeros(0, dtype=np.int64)
+    if opt.beads > 0:
+        from pelvicnav.pose.collision import vertex_normals
+
+        bead_bones = rng.integers(0, 3, opt.beads) + 1
+        beads = np.empty((opt.beads, 3))
+        for n, lab in enumerate(bead_bones):
+            normals = vertex_normals(V[lab - 1], faces[lab - 1])
+            i = rng.integers(0, V.shape[1])
+            beads[n] = V[lab - 1, i] + normals[i] * opt.bead_radius_mm
+        paint_beads(hu, A, beads, opt.bead_radius_mm)
+    return SynthCT(
+        hu=Volume(hu, A),
+        labels=labels,
+        femoral_heads=heads,
+        beads=beads,
+        bead_bones=bead_bones,
+        bead_radius=opt.bead_radius_mm,
+    )
+
+
+def paint_beads(
+    hu: NDArray[np.float32],
+    world_from_ijk: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    radius: float,
+    value: float | NDArray = 3000.0,
+) -> None:
+    """Set voxels whose centres lie within ``radius`` of each centre (at least the nearest)."""
+    A = np.asarray(world_from_ijk)
+    Ainv = np.linalg.inv(A)
+    sp = np.linalg.norm(A[:3, :3], axis=0)
+    reach = np.ceil(radius / sp).astype(int) + 1
+    for n, c in enumerate(np.asarray(centres, dtype=np.float64)):
+        ijk = np.rint(Ainv[:3, :3] @ c + Ainv[:3, 3]).astype(int)
+        lo = np.maximum(ijk - reach, 0)
+        hi = np.minimum(ijk + reach + 1, hu.shape)
+        if np.any(hi <= lo):
+            continue
+        g = np.stack(
+            np.meshgrid(*[np.arange(lo[d], hi[d]) for d in range(3)], indexing="ij"), -1
+        ).astype(np.float64)
+        w = g @ A[:3, :3].T + A[:3, 3]
+        # A bead smaller than a voxel still marks the voxel it sits in (half the voxel diagonal).
+        inside = np.linalg.norm(w - c, axis=-1) <= max(radius, 0.5 * np.linalg.norm(sp))
+        box = hu[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+        box[inside] = value if np.ndim(value) == 0 else value[n]

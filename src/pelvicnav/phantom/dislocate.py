@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.phantom.ctsynth import SynthCT, _winding_inside, bone_labels
+from pelvicnav.phantom.ctsynth import SynthCT, _winding_inside, bone_labels, paint_beads
 
 __all__ = ["PATTERNS", "Dislocation", "apply_dislocation", "draw_dislocation", "reduction_stages"]
 
@@ -206,7 +206,22 @@ def apply_dislocation(
     ijk = (back - A[:3, 3]) @ np.linalg.inv(A[:3, :3]).T
     hu[new_mask] = map_coordinates(ct.hu.data, ijk.T, order=1, mode="nearest")
 
+    # Beads glued to the moved bone move with it: erase, then paint at the new place.
+    beads = ct.beads.copy()
+    on_bone = ct.bead_bones == label
+    if on_bone.any():
+        paint_beads(hu, A, beads[on_bone], ct.bead_radius + 0.5, value=40.0)
+        beads[on_bone] = tf.apply(dislocation.transform, beads[on_bone])
+        paint_beads(hu, A, beads[on_bone], ct.bead_radius)
     labels = ct.labels.copy()
     labels[old_mask] = 0
     labels[new_mask & (labels == 0)] = label
-    return SynthCT(Volume(hu, A), labels, ct.femoral_heads.copy()), moved
+    moved_ct = SynthCT(
+        Volume(hu, A),
+        labels,
+        ct.femoral_heads.copy(),
+        beads=beads,
+        bead_bones=ct.bead_bones.copy(),
+        bead_radius=ct.bead_radius,
+    )
+    return moved_ct, moved
