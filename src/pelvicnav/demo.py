@@ -9,6 +9,7 @@ import numpy as np
 
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
+from pelvicnav.io.atomic import save_figure
 
 BONE_COLOURS = {"sacrum": "#4c72b0", "left_hip": "#dd8452", "right_hip": "#55a868"}
 
@@ -119,10 +120,7 @@ def _planning_figure(subject, current, target, path: Path) -> None:
     ax.legend(markerscale=8, fontsize=8, loc="lower right")
     ax.set_title("Target reduction pose (coronal projection)")
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".part.png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path, dpi=90)
 
 
 def _projection_figure(a, views: dict[str, pj.CArm], path: Path) -> None:
@@ -158,7 +156,4 @@ def _projection_figure(a, views: dict[str, pj.CArm], path: Path) -> None:
         ax.set_ylabel("row (px)")
     fig.suptitle("Atlas pelvis projected through pelvicnav's C-arm model (radiological display)")
     fig.tight_layout()
-    tmp = path.with_suffix(".part.png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path, dpi=90)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pelvicnav.io.atomic import save_figure
 from pelvicnav.pose.spm import PoseModel
 
 
@@ -49,8 +50,5 @@ def plot_spm_modes(model: PoseModel, path: str | os.PathLike, *, n_modes: int = 
                 ax.set_title(f"mode {m + 1} ({100 * share:.0f}% of variance)")
     fig.suptitle("Statistical pose model: mean (grey), -3 sd (yellow), +3 sd (green)")
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".part.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path, dpi=100)
     return path

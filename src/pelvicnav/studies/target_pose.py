@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pelvicnav.geometry import transforms as tf
+from pelvicnav.io.atomic import save_figure, write_text
 
 __all__ = [
     "METHODS",
@@ -362,7 +363,7 @@ def run_target_pose_study(
         "seconds": seconds,
         "paper_medians_mm_deg": PAPER_MEDIANS,
     }
-    _atomic_write(out / "settings.json", json.dumps(meta, indent=2) + "\n")
+    write_text(out / "settings.json", json.dumps(meta, indent=2) + "\n")
     return rows
 
 
@@ -433,12 +434,6 @@ def compare_methods(rows: Sequence[dict], settings: TargetPoseSettings) -> list[
     return out
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def _write_csv(path: Path, rows: Sequence[dict], fields: Sequence[str] | None = None) -> None:
     if fields is None:
         fields = list(rows[0]) if rows else []
@@ -505,7 +500,4 @@ def _boxplot(rows: Sequence[dict], settings: TargetPoseSettings, path: Path) -> 
         "Target reduction pose, leave-one-out over the atlas (cf. Han et al. 2020, fig. 5)"
     )
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".part.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path, dpi=110)
