@@ -163,13 +163,19 @@ def _fit_sphere(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
 
 
 def femoral_head(
-    hip_vertices: ArrayLike, hip_faces: ArrayLike, *, radius_range: tuple[float, float] = (18, 32)
+    hip_vertices: ArrayLike,
+    hip_faces: ArrayLike,
+    *,
+    radius_range: tuple[float, float] = (18, 32),
+    lateral: ArrayLike | None = None,
 ) -> tuple[NDArray[np.float64], float]:
     """Centre and radius of the acetabular sphere of an innominate bone (mm).
 
     Every vertex votes for centres along its outward normal at plausible radii (the articular
     cup's normals point at the femoral head's centre); the densest vote starts an iterative sphere
-    fit to the vertices whose normals point at the centre.
+    fit to the vertices whose normals point at the centre. With ``lateral`` (the direction away
+    from the midline, e.g. +x for a left innominate in LPS) only centres lateral to the bone's
+    centroid are considered: the obturator foramen's rim is concave too, but medial.
 
     Raises
     ------
@@ -184,7 +190,11 @@ def femoral_head(
     votes = (V[:, None, :] + rs[None, :, None] * N[:, None, :]).reshape(-1, 3)
     lo = votes.min(axis=0)
     keys, counts = np.unique(np.floor((votes - lo) / 3.0).astype(int), axis=0, return_counts=True)
-    c = lo + (keys[np.argmax(counts)] + 0.5) * 3.0
+    centres = lo + (keys + 0.5) * 3.0
+    if lateral is not None:
+        side = (centres - V.mean(axis=0)) @ np.asarray(lateral, dtype=np.float64)
+        counts = np.where(side > 0, counts, 0)
+    c = centres[np.argmax(counts)]
     r = float(np.mean(radius_range))
     for _ in range(6):
         d = np.linalg.norm(V - c, axis=1)
@@ -272,7 +282,7 @@ def synthesize_ct(
     heads = np.zeros((2, 4))
     if opt.femurs:
         for h, (b, side) in enumerate(((1, 1.0), (2, -1.0))):
-            c, r = femoral_head(V[b], faces[b])
+            c, r = femoral_head(V[b], faces[b], lateral=(side, 0.0, 0.0))
             heads[h] = [*c, r]
             r_head = max(r - 2.0, 10.0)  # joint space of ~2 mm
             neck_end = c + np.array([side * 0.75, 0.1, -0.65]) * 50.0
