@@ -1,0 +1,1 @@
+"""Image similarity and error metrics."""
