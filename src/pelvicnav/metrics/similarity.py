@@ -40,7 +40,7 @@ def _check_pair(fixed: ArrayLike, moving: ArrayLike) -> tuple[NDArray, NDArray]:
 
 
 def sobel_gradients(images: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Sobel derivatives along columns (x) and rows (y) of ``(..., H, W)`` images (edges: replicate).
+    """Sobel derivatives along columns (x) and rows (y) of ``(..., H, W)`` images (edge padding).
 
     Only the last two axes are filtered, so a batch of images is differentiated independently.
     """
