@@ -1,0 +1,1 @@
+"""Intraoperative guidance: residual motion to the planned target, overlays."""
