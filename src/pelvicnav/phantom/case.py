@@ -64,20 +64,19 @@ def simulate_case(
     # Validate the cheap things before the expensive ones.
     if not views:
         raise ValueError("at least one view is needed")
-    carms = {name: standard_view(name) for name in views}
+    V = np.asarray(vertices, dtype=np.float64)
+    isocenter = tuple(float(c) for c in V.reshape(-1, 3).mean(axis=0))
+    carms = {name: standard_view(name, isocenter=isocenter) for name in views}
     for carm in carms.values():
         quanta_per_pixel(dose_ugy, carm, DetectorModel())  # raises on a bad dose
-    V = np.asarray(vertices, dtype=np.float64)
     rng = np.random.default_rng([seed, subject_id])
     disl = draw_dislocation(
         V, faces, bone=bone, pattern=pattern, rng=rng, max_mm=max_mm, max_deg=max_deg
     )
     ct = synthesize_ct(V, faces, rng=rng, options=ct_options)
     moved_ct, moved = apply_dislocation(ct, V, faces, disl, rng=rng)
-    isocenter = tuple(float(c) for c in V.reshape(-1, 3).mean(axis=0))
     radiographs = []
-    for name in views:
-        carm = standard_view(name, isocenter=isocenter)
+    for name, carm in carms.items():
         rad = simulate_radiograph(moved_ct.hu, carm, dose_ugy=dose_ugy, rng=rng)
         radiographs.append(
             View(
@@ -115,7 +114,6 @@ def simulate_case(
         },
         "views": {
             name: {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(carm).items()}
-            | {"isocenter": list(isocenter)}
             for name, carm in carms.items()
         },
         "dose_ugy": dose_ugy,

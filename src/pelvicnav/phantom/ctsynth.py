@@ -32,6 +32,7 @@ __all__ = [
     "CTOptions",
     "SynthCT",
     "bone_labels",
+    "bone_mask",
     "femoral_head",
     "paint_beads",
     "synthesize_ct",
@@ -125,33 +126,45 @@ def _winding_inside(vertices, faces, points) -> NDArray[np.bool_]:
     return np.asarray(w) > 0.5
 
 
+def bone_mask(
+    vertices: ArrayLike,
+    faces: ArrayLike,
+    shape: tuple[int, int, int],
+    world_from_ijk: ArrayLike,
+) -> NDArray[np.bool_]:
+    """Voxels of a grid inside one mesh (generalised winding number > 1/2); only the mesh's
+    bounding box is tested."""
+    V = np.asarray(vertices, dtype=np.float64)
+    A = np.asarray(world_from_ijk, dtype=np.float64)
+    Ainv = np.linalg.inv(A)
+    mask = np.zeros(shape, dtype=bool)
+    ijk = V @ Ainv[:3, :3].T + Ainv[:3, 3]
+    lo = np.maximum(np.floor(ijk.min(axis=0)).astype(int), 0)
+    hi = np.minimum(np.ceil(ijk.max(axis=0)).astype(int) + 1, shape)
+    if np.any(hi <= lo):
+        return mask
+    axes = [np.arange(lo[d], hi[d]) for d in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float64)
+    inside = _winding_inside(V, faces, grid @ A[:3, :3].T + A[:3, 3])
+    mask[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = inside.reshape([len(a) for a in axes])
+    return mask
+
+
 def bone_labels(
     vertices: ArrayLike,
     faces: tuple[ArrayLike, ...],
     shape: tuple[int, int, int],
     world_from_ijk: ArrayLike,
 ) -> NDArray[np.uint8]:
-    """Label map of the three bones on a grid (generalised winding number > 1/2 inside).
+    """Label map of the three bones on a grid (:func:`bone_mask` of each).
 
-    Only each bone's bounding box is tested. Where bones overlap (segmented joints touch), the
-    later bone in ``sacrum, left_hip, right_hip`` order does not overwrite an earlier one.
+    Where bones overlap (segmented joints touch), the later bone in ``sacrum, left_hip,
+    right_hip`` order does not overwrite an earlier one.
     """
     V = np.asarray(vertices, dtype=np.float64)
-    A = np.asarray(world_from_ijk, dtype=np.float64)
-    Ainv = np.linalg.inv(A)
     labels = np.zeros(shape, dtype=np.uint8)
     for l in range(3):
-        ijk = V[l] @ Ainv[:3, :3].T + Ainv[:3, 3]
-        lo = np.maximum(np.floor(ijk.min(axis=0)).astype(int), 0)
-        hi = np.minimum(np.ceil(ijk.max(axis=0)).astype(int) + 1, shape)
-        if np.any(hi <= lo):
-            continue
-        axes = [np.arange(lo[d], hi[d]) for d in range(3)]
-        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float64)
-        inside = _winding_inside(V[l], faces[l], grid @ A[:3, :3].T + A[:3, 3])
-        box = labels[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
-        inside = inside.reshape(box.shape) & (box == 0)
-        box[inside] = l + 1
+        labels[bone_mask(V[l], faces[l], shape, world_from_ijk) & (labels == 0)] = l + 1
     return labels
 
 
@@ -276,7 +289,7 @@ def synthesize_ct(
     tissue[depth_mm >= 2] = -100.0  # subcutaneous fat
     tissue[depth_mm >= 2 + fat] = 50.0  # muscle and viscera
     hu = np.broadcast_to(tissue[:, :, None], shape).astype(np.float32)
-    hu = hu + (depth_mm >= 0)[:, :, None] * rng.normal(0, 8, shape).astype(np.float32)
+    hu += (depth_mm >= 0)[:, :, None] * rng.normal(0, 8, shape).astype(np.float32)
 
     # --- femurs (image only) ----------------------------------------------------------------
     heads = np.zeros((2, 4))

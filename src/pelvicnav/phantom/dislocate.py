@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.phantom.ctsynth import SynthCT, _winding_inside, bone_labels, paint_beads
+from pelvicnav.phantom.ctsynth import SynthCT, _winding_inside, bone_mask, paint_beads
 
 __all__ = ["PATTERNS", "Dislocation", "apply_dislocation", "draw_dislocation", "reduction_stages"]
 
@@ -174,9 +174,7 @@ def apply_dislocation(
     moved[b] = tf.apply(dislocation.transform, V[b])
     A = ct.hu.world_from_ijk
     shape = ct.labels.shape
-    new_mask = (
-        bone_labels(np.stack([moved[b]] * 3), (faces[b],) * 3, shape, A) == 1
-    )  # winding-number mask of the moved bone alone
+    new_mask = bone_mask(moved[b], faces[b], shape, A)
     old_mask = ct.labels == label
     hu = ct.hu.data.copy()
 
