@@ -10,17 +10,20 @@ from benchmarks.harness import measure
 
 
 def run() -> dict:
-    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
     from pelvicnav.phantom.ctsynth import synthesize_ct
+    from pelvicnav.phantom.population import load_population, procedural_population, template_bones
     from pelvicnav.phantom.xray import simulate_radiograph, standard_view
 
-    try:
-        atlas = load_atlas(os.environ.get("PELVICNAV_ATLAS"))
-    except AtlasNotFoundError as err:
-        return {"skipped": str(err)}
+    def population() -> None:
+        template_bones.cache_clear()
+        procedural_population(40, seed=0)
+
+    pop = {"procedural_population_40_cold": measure(population, repeats=3)}
+    atlas = load_population(os.environ.get("PELVICNAV_ATLAS") or None)
     V = atlas.vertices[0]
     ct = synthesize_ct(V, atlas.faces, rng=np.random.default_rng(0))
-    out = {
+    out = pop | {
+        "source": atlas.source,
         "ct_synthesis": measure(
             lambda: synthesize_ct(V, atlas.faces, rng=np.random.default_rng(0)), repeats=3
         )

@@ -68,12 +68,15 @@ def test_atlas_info_real(real_atlas_path):
     assert "40 subjects, 5000 vertices/bone" in res.output
 
 
-def test_demo_without_atlas(tmp_path, monkeypatch):
+def test_demo_without_atlas_runs_on_the_procedural_population(tmp_path, monkeypatch):
     monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     res = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])
     assert res.exit_code == 0, res.output
-    assert "C-arm views" in res.output and "Skipping the atlas projection" in res.output
+    assert "C-arm views" in res.output and "from procedural" in res.output
+    assert "SPM_CC  target error" in res.output
+    for name in ("atlas_projection.png", "target_pose.png"):
+        assert (tmp_path / "demo" / name).read_bytes()[:4] == b"\x89PNG"
 
 
 def test_demo_with_atlas_writes_figure(tiny_atlas, tmp_path):
@@ -88,10 +91,13 @@ def test_demo_with_atlas_writes_figure(tiny_atlas, tmp_path):
 def test_study_commands_report_missing_atlas(tmp_path, monkeypatch):
     monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    missing = ["--atlas", str(tmp_path / "nowhere")]
     for args in (
-        ["study", "target-pose", "--out", str(tmp_path / "o")],
-        ["study", "spm-modes", "--out", str(tmp_path / "m.png")],
-        ["study", "ssm-reference"],
+        ["study", "target-pose", "--out", str(tmp_path / "o"), *missing],
+        ["study", "spm-modes", "--out", str(tmp_path / "m.png"), *missing],
+        ["study", "population", "--out", str(tmp_path / "p"), *missing],
+        ["simulate", "--subject", "1", "--out", str(tmp_path / "c"), *missing],
+        ["study", "ssm-reference"],  # needs the atlas's statismo models: no fallback
     ):
         res = runner.invoke(app, args)
         assert res.exit_code == 2, args
@@ -102,6 +108,29 @@ def test_study_commands_report_missing_atlas(tmp_path, monkeypatch):
     assert res.exit_code == 2
     assert "not available yet" in res.output
     assert not (tmp_path / "o").exists()
+
+
+def test_population_study_and_spm_modes_offline(tmp_path, monkeypatch):
+    monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    res = runner.invoke(app, ["study", "population", "--out", str(tmp_path / "p")])
+    assert res.exit_code == 0, res.output
+    assert "pelvic width" in (tmp_path / "p" / "sizes.md").read_text()
+    assert (tmp_path / "p" / "population.png").read_bytes()[:4] == b"\x89PNG"
+    out = tmp_path / "modes.png"
+    res = runner.invoke(app, ["study", "spm-modes", "--atlas", "procedural", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.atlas
+def test_population_study_against_the_atlas(real_atlas_path, tmp_path):
+    res = runner.invoke(
+        app, ["study", "population", "--out", str(tmp_path), "--atlas", str(real_atlas_path)]
+    )
+    assert res.exit_code == 0, res.output
+    text = (tmp_path / "sizes.md").read_text()
+    assert "atlas range" in text and "| NO |" not in text
 
 
 @pytest.mark.atlas
@@ -136,6 +165,25 @@ def test_simulate_bad_input(tiny_atlas, tmp_path):
         assert res.exit_code == 2, (args, res.output)
         assert message in res.output
         assert not out.exists()
+
+
+@pytest.mark.slow
+def test_simulate_without_atlas_uses_the_procedural_population(tmp_path, monkeypatch):
+    import numpy as np
+
+    from pelvicnav.io.nifti import read_nifti
+
+    monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    out = tmp_path / "case"
+    res = runner.invoke(
+        app, ["simulate", "--subject", "3", "--out", str(out), "--views", "ap", "--seed", "1"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "procedural pelvis population" in res.output
+    labels, _ = read_nifti(out / "labels.nii.gz")
+    assert set(np.unique(labels)) == {0, 1, 2, 3}
+    assert json.loads((out / "truth.json").read_text())["subject_id"] == 3
 
 
 @pytest.mark.atlas

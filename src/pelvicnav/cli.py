@@ -38,6 +38,30 @@ AtlasOption = Annotated[
         file_okay=False,
     ),
 ]
+PopulationOption = Annotated[
+    str | None,
+    typer.Option(
+        "--atlas",
+        help=(
+            "Atlas folder, or 'procedural' for the built-in population (default: "
+            "$PELVICNAV_ATLAS, then the user cache, then the procedural population)."
+        ),
+    ),
+]
+
+
+def _population(location: str | None):
+    """The atlas, or the procedural population (see ``phantom.population.load_population``)."""
+    from rich.console import Console
+
+    from pelvicnav.phantom.population import load_population
+
+    a = load_population(location)
+    if a.source == "procedural":
+        Console(stderr=True).print(
+            f"[yellow]using the procedural pelvis population ({a.n_subjects} subjects)[/]"
+        )
+    return a
 
 
 def _fail(message: str) -> typer.Exit:
@@ -130,7 +154,7 @@ def atlas_download(
 @study_app.command("target-pose")
 def study_target_pose(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],
-    atlas: AtlasOption = None,
+    atlas: PopulationOption = None,
     subjects: Annotated[
         int | None, typer.Option(help="Test only the first N subjects (models still use the rest).")
     ] = None,
@@ -146,7 +170,7 @@ def study_target_pose(
     from rich.progress import Progress
     from rich.table import Table
 
-    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.target_pose import (
         PAPER_MEDIANS,
         TargetPoseSettings,
@@ -159,7 +183,7 @@ def study_target_pose(
             "ground-truth meshes) until ASM segmentation lands"
         )
     try:
-        a = load_atlas(atlas)
+        a = _population(atlas)
         ids = None if subjects is None else tuple(a.subject_ids[:subjects])
         if subjects is not None and not 1 <= subjects <= a.n_subjects:
             raise ValueError(f"--subjects must be between 1 and {a.n_subjects}, got {subjects}")
@@ -200,19 +224,70 @@ def study_target_pose(
 @study_app.command("spm-modes")
 def study_spm_modes(
     out: Annotated[Path, typer.Option(help="PNG to write.")] = Path("spm_modes.png"),
-    atlas: AtlasOption = None,
+    atlas: PopulationOption = None,
 ) -> None:
     """Figure of the first four SPM modes at +-3 sd (cf. the paper's figure 2)."""
-    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.pose.spm import PoseModel
     from pelvicnav.studies.figures import plot_spm_modes
 
     try:
-        a = load_atlas(atlas)
+        a = _population(atlas)
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
     plot_spm_modes(PoseModel.fit(a.vertices), out)
     typer.echo(f"wrote {out}")
+
+
+@study_app.command("population")
+def study_population(
+    out: Annotated[Path, typer.Option(help="Output folder (created).")] = Path("population"),
+    atlas: AtlasOption = None,
+    subjects: Annotated[int, typer.Option(help="Procedural subjects to draw.")] = 40,
+    seed: Annotated[int, typer.Option(help="Seed of the procedural population.")] = 0,
+) -> None:
+    """Procedural population vs the atlas: size table (sizes.csv/.md) and population.png."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.phantom.population import procedural_population
+    from pelvicnav.studies.population import run_population_study
+
+    console = Console()
+    try:
+        pop = procedural_population(subjects, seed=seed)
+        try:
+            reference = load_atlas(atlas)
+        except AtlasNotFoundError as err:
+            if atlas is not None:
+                raise
+            console.print(f"[yellow]{err}[/]\nno atlas: the table shows the population only")
+            reference = None
+        rows = run_population_study(out, pop, reference)
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    table = Table(
+        "measure (mm)", "procedural mean ± sd", "range", title=f"procedural population, seed {seed}"
+    )
+    if reference is not None:
+        for col in ("atlas mean ± sd", "range", "inside"):
+            table.add_column(col)
+    for r in rows:
+        cells = [
+            str(r["measure"]),
+            f"{r['procedural_mean']} ± {r['procedural_sd']}",
+            f"{r['procedural_min']}-{r['procedural_max']}",
+        ]
+        if reference is not None:
+            cells += [
+                f"{r['atlas_mean']} ± {r['atlas_sd']}",
+                f"{r['atlas_min']}-{r['atlas_max']}",
+                "yes" if r["inside"] else "[red]NO[/]",
+            ]
+        table.add_row(*cells)
+    console.print(table)
+    console.print(f"wrote {out / 'sizes.csv'}, {out / 'sizes.md'}, {out / 'population.png'}")
 
 
 @study_app.command("ssm-reference")
@@ -250,9 +325,9 @@ def study_ssm_reference(atlas: AtlasOption = None) -> None:
 
 @app.command("simulate")
 def simulate(
-    subject: Annotated[int, typer.Option(help="Atlas subject id.")],
+    subject: Annotated[int, typer.Option(help="Subject id (atlas id, or 1-40 procedural).")],
     out: Annotated[Path, typer.Option(help="Output folder.")],
-    atlas: AtlasOption = None,
+    atlas: PopulationOption = None,
     pattern: Annotated[str, typer.Option(help="si, ps or open-book.")] = "open-book",
     bone: Annotated[
         str, typer.Option(help="Dislocated innominate: left_hip or right_hip.")
@@ -272,19 +347,13 @@ def simulate(
     """Simulate a dislocated patient: CT, label map, radiographs and ground truth."""
     from rich.console import Console
 
-    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.phantom.case import simulate_case
     from pelvicnav.phantom.ctsynth import CTOptions
 
     console = Console()
     try:
-        try:
-            a = load_atlas(atlas)
-        except AtlasNotFoundError as err:
-            raise ValueError(
-                f"{err} (the built-in procedural population is not available yet, so simulate "
-                "needs the atlas)"
-            ) from None
+        a = _population(atlas)
         vertices = a.vertices[a.subject_index(subject)]
         with console.status(f"simulating subject {subject} ({pattern}, {dose} uGy/frame)"):
             truth = simulate_case(
@@ -292,7 +361,7 @@ def simulate(
                 dose_ugy=dose, views=tuple(v.strip() for v in views.split(",") if v.strip()),
                 seed=seed, ct_options=CTOptions(beads=beads),
             )  # fmt: skip
-    except ValueError as err:
+    except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
     d = truth["dislocation"]
     console.print(

@@ -23,11 +23,14 @@ def _views() -> dict[str, pj.CArm]:
 
 
 def run_demo(out: Path, *, atlas: str | os.PathLike | None = None) -> None:
-    """Print the C-arm geometry; with an atlas, project a pelvis into views and plan a reduction."""
+    """Print the C-arm geometry, project a pelvis into views and plan a reduction.
+
+    Uses the atlas when one is configured, else the procedural population.
+    """
     from rich.console import Console
     from rich.table import Table
 
-    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.phantom.population import load_population
 
     console = Console()
     views = _views()
@@ -56,11 +59,7 @@ def run_demo(out: Path, *, atlas: str | os.PathLike | None = None) -> None:
         + f"geodesic distance to identity {tf.distance(np.eye(4), T):.3f}"
     )
 
-    try:
-        a = load_atlas(atlas)
-    except AtlasNotFoundError as err:
-        console.print(f"[yellow]{err}[/]\nSkipping the atlas projection figure.")
-        return
+    a = load_population(atlas)
     console.print(f"atlas: {a.n_subjects} subjects from {a.source}")
     out.mkdir(parents=True, exist_ok=True)
     path = out / "atlas_projection.png"
