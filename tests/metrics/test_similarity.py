@@ -82,3 +82,18 @@ def test_bad_input(image):
         ncc(image, bad)
     with pytest.raises(ValueError, match="2D"):
         gradient_ncc(image[None], image)
+
+
+def test_fast_go_equals_equation_10():
+    from pelvicnav.metrics.similarity import GradientOrientation
+
+    rng = np.random.default_rng(3)
+    fixed = rng.random((40, 50))
+    moving = rng.random((2, 3, 40, 50)).astype(np.float32)
+    moving[0, 0] = fixed  # identical image: GO about 1
+    go = GradientOrientation(fixed)
+    np.testing.assert_allclose(go(moving), gradient_orientation(fixed, moving), rtol=1e-5)
+    with pytest.raises(ValueError, match="shape"):
+        go(np.zeros((3, 40, 49)))
+    with pytest.raises(ValueError, match="NaN"):
+        go(np.full((40, 50), np.nan))

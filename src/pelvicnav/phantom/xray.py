@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from pelvicnav.drr.attenuation import MU_WATER_PER_MM, mu_from_hu
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 
@@ -43,7 +44,6 @@ __all__ = [
     "standard_view",
 ]
 
-MU_WATER_PER_MM = 0.02059  # water at 60 keV: 0.2059 cm^-1 (NIST XCOM, with coherent)
 _E_J = 60e3 * 1.602176634e-19
 _MU_EN_RHO_AIR_CM2_G = 0.03041
 PHOTONS_PER_MM2_PER_UGY = 1e-6 / (_E_J * _MU_EN_RHO_AIR_CM2_G * 1000.0) / 100.0  # ~3.42e4
@@ -73,13 +73,6 @@ def standard_view(name: str, **carm_kwargs) -> pj.CArm:
         raise ValueError(f"unknown view {name!r}; expected one of {sorted(STANDARD_VIEWS)}")
     orbit, tilt = STANDARD_VIEWS[key]
     return pj.CArm(orbit_deg=orbit, tilt_deg=tilt, **carm_kwargs)
-
-
-def mu_from_hu(hu: NDArray, *, mu_water: float = MU_WATER_PER_MM) -> NDArray[np.float32]:
-    """Linear attenuation (1/mm) from Hounsfield units; air and below map to 0."""
-    return (mu_water * np.maximum(0.0, 1.0 + np.asarray(hu, dtype=np.float64) / 1000.0)).astype(
-        np.float32
-    )
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,66 @@
+"""CT numbers to linear attenuation, and per-bone attenuation models from a CT and its labels."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from pelvicnav.drr.splat import PointModel, point_model
+from pelvicnav.drr.volume import Volume
+
+__all__ = ["MU_WATER_PER_MM", "bone_models", "mu_from_hu", "sample_factors"]
+
+MU_WATER_PER_MM = 0.02059  # water at 60 keV: 0.2059 cm^-1 (NIST XCOM, with coherent)
+
+
+def mu_from_hu(hu: ArrayLike, *, mu_water: float = MU_WATER_PER_MM) -> NDArray[np.float32]:
+    """Linear attenuation (1/mm) from Hounsfield units; air and below map to 0."""
+    return (mu_water * np.maximum(0.0, 1.0 + np.asarray(hu, dtype=np.float64) / 1000.0)).astype(
+        np.float32
+    )
+
+
+def sample_factors(spacing: ArrayLike, target_mm: float) -> tuple[int, int, int]:
+    """Integer block sizes that bring voxel ``spacing`` (mm) closest to ``target_mm``."""
+    s = np.asarray(spacing, dtype=np.float64)
+    return tuple(int(max(1, round(target_mm / x))) for x in s)  # type: ignore[return-value]
+
+
+def bone_models(
+    ct_hu: Volume,
+    labels: ArrayLike,
+    *,
+    bones: Sequence[str] = ("sacrum", "left_hip", "right_hip"),
+    label_values: Sequence[int] = (1, 2, 3),
+    sample_mm: float = 1.0,
+) -> dict[str, PointModel]:
+    """One attenuation model per bone: the CT's mu inside the bone's label, block-summed.
+
+    Parameters
+    ----------
+    ct_hu : Volume
+        CT in HU (the preoperative CT; its frame is each bone's ``ct`` frame).
+    labels : (ni, nj, nk) int
+        Label map on the CT grid.
+    sample_mm : float
+        Target sample spacing (e.g. half the pyramid level's binning factor, in mm).
+
+    Raises
+    ------
+    ValueError
+        A label map whose shape differs from the CT, or a bone with no voxel.
+    """
+    lab = np.asarray(labels)
+    if lab.shape != ct_hu.shape:
+        raise ValueError(f"label map shape {lab.shape} differs from the CT's {ct_hu.shape}")
+    mu = mu_from_hu(ct_hu.data)
+    factors = sample_factors(ct_hu.spacing, sample_mm)
+    out = {}
+    for bone, value in zip(bones, label_values, strict=True):
+        mask = lab == value
+        if not mask.any():
+            raise ValueError(f"the label map has no voxel of {bone} (label {value})")
+        out[bone] = point_model(Volume(np.where(mask, mu, 0.0), ct_hu.world_from_ijk), factors)
+    return out

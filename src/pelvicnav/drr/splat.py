@@ -1,0 +1,241 @@
+"""Fast batched DRRs by splatting: each bone is a cloud of attenuation samples.
+
+A bone's attenuation volume is block-summed into samples ``(x_i, m_i)`` (position in the CT frame,
+integrated attenuation ``m_i = sum mu * voxel volume`` in mm^2). A line-integral image is the
+projection of this mass: with ``t`` the distance from the source, the volume element behind pixel
+area ``du dv`` is ``dV = t^2 cos^3(theta) A / SDD^2 du dv dt`` (``A`` pixel area, ``theta`` the
+ray's angle to the principal axis), so each sample adds
+
+    m_i * fx * fy / (w_i^2 * cos(theta_i))
+
+to the image, spread by a separable tent kernel whose half-width is the sample spacing projected
+to the detector (times the smallest integer that makes it at least one pixel, so that the tents
+of a lattice sum to a constant) and whose discrete weights sum to one. Here ``w`` is the
+depth along the principal axis (``P`` normalised so that ``w`` is in mm), and ``fx, fy`` the focal
+lengths in pixels. The image is therefore a DRR blurred by about one sample spacing; mass is
+conserved exactly. Rendering cost is linear in the number of samples, independent of the image
+size, which makes a generation of CMA-ES candidates 10-50x cheaper than ray casting
+(:mod:`pelvicnav.drr.projector`, kept as the reference).
+
+Kernel: numba-parallel over ``(b, k)`` image pairs (each thread owns its output image).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from pelvicnav.drr.volume import Volume
+from pelvicnav.geometry import projection as pj
+
+__all__ = ["PointModel", "point_model", "splat"]
+
+
+@dataclass(frozen=True, eq=False)
+class PointModel:
+    """Attenuation samples of one rigid body.
+
+    Attributes
+    ----------
+    points : (n, 3) float64, mm
+        Sample positions in the body's CT frame.
+    mass : (n,) float64, mm^2
+        Integrated attenuation of each sample (mu [1/mm] x volume [mm^3]).
+    spacing : float, mm
+        Largest sample spacing (sets the kernel width).
+    """
+
+    points: NDArray[np.float64]
+    mass: NDArray[np.float64]
+    spacing: float
+
+    def __post_init__(self) -> None:
+        p = np.ascontiguousarray(self.points, dtype=np.float64)
+        m = np.ascontiguousarray(self.mass, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3 or m.shape != (len(p),):
+            raise ValueError(f"points (n, 3) and mass (n,) must match, got {p.shape}, {m.shape}")
+        if len(p) == 0:
+            raise ValueError("a point model needs at least one sample (is the bone empty?)")
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(m))) or self.spacing <= 0:
+            raise ValueError("point model has non-finite samples or a non-positive spacing")
+        object.__setattr__(self, "points", p)
+        object.__setattr__(self, "mass", m)
+
+    @property
+    def centroid(self) -> NDArray[np.float64]:
+        """Mass-weighted centre (mm, CT frame)."""
+        return (self.mass @ self.points) / self.mass.sum()
+
+
+def point_model(volume: Volume, factors: Sequence[int] = (1, 1, 1)) -> PointModel:
+    """Block-sum an attenuation volume (1/mm) into samples ``factors`` voxels on a side.
+
+    Empty blocks are dropped; a block's sample sits at its mass-weighted centre, so the first
+    moments are preserved exactly at any block size.
+    """
+    f = tuple(int(x) for x in factors)
+    if len(f) != 3 or min(f) < 1:
+        raise ValueError(f"factors must be three positive integers, got {factors}")
+    data = np.asarray(volume.data, dtype=np.float64)
+    if np.any(data < 0):
+        raise ValueError("attenuation must be non-negative")
+    shape = [int(np.ceil(s / k)) * k for s, k in zip(data.shape, f, strict=True)]
+    padded = np.zeros(shape)
+    padded[: data.shape[0], : data.shape[1], : data.shape[2]] = data
+    blocks = [s // k for s, k in zip(shape, f, strict=True)]
+    view = padded.reshape(blocks[0], f[0], blocks[1], f[1], blocks[2], f[2])
+    mass = view.sum(axis=(1, 3, 5))
+    # mass-weighted index centre of each block
+    idx = []
+    for axis, k in enumerate(f):
+        offs = np.arange(k, dtype=np.float64)
+        shape_w = [1] * 6
+        shape_w[2 * axis + 1] = k
+        moment = (view * offs.reshape(shape_w)).sum(axis=(1, 3, 5))
+        base = (np.arange(blocks[axis]) * k).reshape([-1 if a == axis else 1 for a in range(3)])
+        idx.append(base + moment / np.where(mass > 0, mass, 1.0))
+    keep = mass > 0
+    ijk = np.stack([np.broadcast_to(i, mass.shape)[keep] for i in idx], axis=1)
+    voxel_volume = abs(np.linalg.det(volume.world_from_ijk[:3, :3]))
+    spacing = float(np.max(volume.spacing * np.asarray(f)))
+    return PointModel(volume.world_points(ijk), mass[keep] * voxel_volume, spacing)
+
+
+def _intrinsics(P: NDArray) -> tuple[float, float, float, float]:
+    K = pj.decompose_projection(P).intrinsics
+    return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+
+
+def splat(
+    models: Sequence[PointModel],
+    poses: ArrayLike,
+    projections: ArrayLike,
+    shape: tuple[int, int],
+) -> NDArray[np.float32]:
+    """DRRs of B candidate pose sets in K views, all bones summed.
+
+    Parameters
+    ----------
+    models : L PointModel
+    poses : (B, L, 4, 4) float
+        ``world_from_ct`` of every bone in every candidate.
+    projections : (K, 3, 4) or (B, K, 3, 4) float
+        World mm -> pixels (column, row) of a ``shape`` image, shared by all candidates or one
+        set per candidate (e.g. 9-DoF registration, where the source position varies).
+    shape : (rows, cols)
+
+    Returns
+    -------
+    (B, K, rows, cols) float32
+        Line integrals (dimensionless).
+    """
+    T = np.asarray(poses, dtype=np.float64)
+    Ps = np.asarray(projections, dtype=np.float64)
+    L = len(models)
+    if T.ndim != 4 or T.shape[1:] != (L, 4, 4):
+        raise ValueError(f"poses must have shape (B, {L}, 4, 4), got {T.shape}")
+    if Ps.ndim == 3:
+        Ps = Ps[None]
+    if Ps.ndim != 4 or Ps.shape[2:] != (3, 4) or Ps.shape[0] not in (1, T.shape[0]):
+        raise ValueError(
+            f"projections must have shape (K, 3, 4) or ({T.shape[0]}, K, 3, 4), got {Ps.shape}"
+        )
+    rows, cols = (int(s) for s in shape)
+    if rows < 1 or cols < 1:
+        raise ValueError(f"image shape must be positive, got {shape}")
+    n_views = Ps.shape[1]
+    Ps = np.stack([pj.normalize_projection(P) for P in Ps.reshape(-1, 3, 4)])
+    intr = np.array([_intrinsics(P) for P in Ps]).reshape(-1, n_views, 4)
+    Ps = Ps.reshape(-1, n_views, 3, 4)
+    M = np.einsum("bkij,bljm->bklim", np.broadcast_to(Ps, (T.shape[0], *Ps.shape[1:])), T)
+    pts = np.concatenate([m.points for m in models])
+    mass = np.concatenate([m.mass for m in models])
+    offsets = np.cumsum([0] + [len(m.points) for m in models]).astype(np.int64)
+    spacing = np.array([m.spacing for m in models])
+    intr = np.ascontiguousarray(np.broadcast_to(intr, (T.shape[0], n_views, 4)))
+    out = np.zeros((T.shape[0], n_views, rows, cols), dtype=np.float32)
+    _kernel()(M, pts, mass, offsets, spacing, intr, out)
+    return out
+
+
+_KERNEL = None
+
+
+def _kernel():
+    global _KERNEL
+    if _KERNEL is None:
+        _KERNEL = _compile()
+    return _KERNEL
+
+
+def _compile():  # pragma: no cover - compiled code
+    import numba as nb
+
+    @nb.njit(parallel=True, fastmath=True, cache=True)
+    def kernel(M, pts, mass, offsets, spacing, intr, out):
+        B, K = M.shape[0], M.shape[1]
+        L = offsets.shape[0] - 1
+        rows, cols = out.shape[2], out.shape[3]
+        for bk in nb.prange(B * K):
+            wu = np.empty(64)  # per-thread scratch (allocated inside the parallel loop)
+            wv = np.empty(64)
+            b = bk // K
+            k = bk % K
+            fx, fy, u0, v0 = intr[b, k, 0], intr[b, k, 1], intr[b, k, 2], intr[b, k, 3]
+            img = out[b, k]
+            for l in range(L):
+                m = M[b, k, l]
+                h = spacing[l]
+                for i in range(offsets[l], offsets[l + 1]):
+                    x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+                    uu = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+                    vv = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+                    w = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
+                    if w <= 1e-6:
+                        continue
+                    u = uu / w
+                    v = vv / w
+                    # half-width: the projected spacing, times the smallest integer that makes
+                    # it >= 1 pixel (tents of a lattice then sum to a constant: no ripple)
+                    su = h * fx / w
+                    sv = h * fy / w
+                    ru = su * np.ceil(1.0 / su) if su < 1.0 else su
+                    rv = sv * np.ceil(1.0 / sv) if sv < 1.0 else sv
+                    if u < -ru or v < -rv or u > cols - 1 + ru or v > rows - 1 + rv:
+                        continue
+                    du = (u - u0) / fx
+                    dv = (v - v0) / fy
+                    cos_t = 1.0 / np.sqrt(1.0 + du * du + dv * dv)
+                    value = mass[i] * fx * fy / (w * w * cos_t)
+                    c0 = int(np.ceil(u - ru))
+                    c1 = int(np.floor(u + ru))
+                    r0 = int(np.ceil(v - rv))
+                    r1 = int(np.floor(v + rv))
+                    if c1 - c0 >= 63 or r1 - r0 >= 63:
+                        continue  # absurdly close to the source
+                    su = 0.0
+                    for c in range(c0, c1 + 1):
+                        t = 1.0 - abs(c - u) / ru
+                        t = t if t > 0.0 else 0.0
+                        wu[c - c0] = t
+                        su += t
+                    sv = 0.0
+                    for r in range(r0, r1 + 1):
+                        t = 1.0 - abs(r - v) / rv
+                        t = t if t > 0.0 else 0.0
+                        wv[r - r0] = t
+                        sv += t
+                    if su <= 0.0 or sv <= 0.0:
+                        continue
+                    scale = value / (su * sv)
+                    for r in range(max(r0, 0), min(r1, rows - 1) + 1):
+                        a = wv[r - r0] * scale
+                        if a == 0.0:
+                            continue
+                        for c in range(max(c0, 0), min(c1, cols - 1) + 1):
+                            img[r, c] += a * wu[c - c0]
+
+    return kernel
