@@ -215,3 +215,38 @@ def test_simulate_writes_a_case(real_atlas_path, tmp_path):
     assert moved > 0.1
     np.testing.assert_allclose(truth["poses_world_from_ct"]["sacrum"], np.eye(4))
     assert truth["dislocation"]["pattern"] == "open-book"
+
+
+def test_register_bad_input_writes_nothing(tmp_path):
+    import numpy as np
+
+    from pelvicnav.geometry import projection as pj
+    from pelvicnav.io.nifti import write_nifti
+    from pelvicnav.io.views import View, write_views
+
+    A = np.diag([2.0, 2.0, 2.0, 1.0])
+    ct = np.full((20, 20, 20), 300, dtype=np.int16)
+    labels = np.zeros((20, 20, 20), dtype=np.uint8)
+    labels[2:6], labels[8:12], labels[14:18] = 1, 2, 3
+    write_nifti(tmp_path / "ct.nii.gz", ct, A)
+    write_nifti(tmp_path / "labels.nii.gz", labels, A)
+    write_nifti(tmp_path / "two.nii.gz", np.where(labels == 3, 0, labels).astype(np.uint8), A)
+    carm = pj.CArm(rows=32, cols=32)
+    write_views(tmp_path, [View("ap", np.zeros((32, 32), np.float32), carm.projection_matrix,
+                                carm.pixel_spacing)])  # fmt: skip
+    (tmp_path / "broken.json").write_text("{not json")
+    out = tmp_path / "result.json"
+    base = ["register", "--ct", str(tmp_path / "ct.nii.gz"), "--out", str(out)]
+    views = ["--views", str(tmp_path / "views.json")]
+    for args, message in (
+        (["--labels", str(tmp_path / "two.nii.gz"), *views], "no voxel of right_hip"),
+        (["--labels", str(tmp_path / "labels.nii.gz"), "--views", str(tmp_path / "broken.json")],
+         "not valid JSON"),
+        (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--dof", "7"], "--dof must be"),
+        (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--plan",
+          str(tmp_path / "broken.json")], "not valid JSON"),
+    ):  # fmt: skip
+        res = runner.invoke(app, base + args)
+        assert res.exit_code == 2, (args, res.output)
+        assert message in res.output, res.output
+        assert not out.exists()

@@ -370,6 +370,160 @@ def simulate(
     )
 
 
+def _read_plan(path: Path) -> dict:
+    import json
+
+    import numpy as np
+
+    try:
+        plan = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: file not found") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    for key in ("dislocated_bone", "target_from_current"):
+        if key not in plan:
+            raise ValueError(f"{path}: missing '{key}'")
+    T = np.asarray(plan["target_from_current"], dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{path}: target_from_current must be a finite 4 x 4 matrix")
+    plan["target_from_current"] = T
+    return plan
+
+
+@app.command("register")
+def register(
+    ct: Annotated[Path, typer.Option(help="Preoperative CT (NIfTI, HU).")],
+    labels: Annotated[Path, typer.Option(help="Label map (1 sacrum, 2 left, 3 right hip).")],
+    views: Annotated[Path, typer.Option(help="views.json with the radiographs.")],
+    out: Annotated[Path, typer.Option(help="result.json to write.")],
+    plan: Annotated[
+        Path | None,
+        typer.Option(
+            help="plan.json: dislocated_bone, target_from_current (4x4, CT frame), "
+            "reference_bone (default sacrum)."
+        ),
+    ] = None,
+    dof: Annotated[int, typer.Option(help="Stage-1 degrees of freedom: 6 (P known) or 9.")] = 6,
+    seed: Annotated[int, typer.Option(help="Seed of CMA-ES.")] = 0,
+    overlay: Annotated[
+        Path | None, typer.Option(help="Folder for overlay PNGs (one per view).")
+    ] = None,
+) -> None:
+    """Register the three bones of a CT to radiographs (two-stage multi-body 3D-2D)."""
+    import json
+
+    import numpy as np
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from pelvicnav.drr.volume import Volume
+    from pelvicnav.io.atomic import write_text
+    from pelvicnav.io.nifti import read_nifti
+    from pelvicnav.io.views import read_views
+    from pelvicnav.register.multibody import (
+        RegistrationSettings,
+        RegistrationViews,
+        register_multibody,
+    )
+
+    console = Console()
+    try:
+        if dof not in (6, 9):
+            raise ValueError(f"--dof must be 6 or 9, got {dof}")
+        the_plan = _read_plan(plan) if plan is not None else None
+        vs, _ = read_views(views)
+        data, affine = read_nifti(ct)
+        lab, lab_affine = read_nifti(labels)
+        if lab.shape != data.shape or not np.allclose(lab_affine, affine, atol=1e-4):
+            raise ValueError(
+                f"{labels}: label map grid {lab.shape} does not match the CT's {data.shape}"
+            )
+        for value, bone in ((1, "sacrum"), (2, "left_hip"), (3, "right_hip")):
+            if not np.any(lab == value):
+                raise ValueError(f"{labels}: no voxel of {bone} (label {value})")
+        rv = RegistrationViews(
+            tuple(v.image for v in vs),
+            tuple(v.projection_matrix for v in vs),
+            tuple(tuple(v.pixel_spacing) for v in vs),
+        )
+        settings = RegistrationSettings(dof=dof)
+        volume = Volume(np.asarray(data, dtype=np.float32), affine)
+        with Progress(console=console) as bar:
+            tasks = {
+                "stage 1": bar.add_task("stage 1", total=len(settings.factors)),
+                "stage 2": bar.add_task("stage 2", total=len(settings.factors)),
+            }
+
+            def report(stage: str, done: int, total: int) -> None:
+                bar.update(tasks[stage], completed=done)
+
+            result = register_multibody(
+                volume, lab, rv, seed=seed, settings=settings, progress=report
+            )
+        record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed}
+        record |= result.to_json()
+        if the_plan is not None:
+            record["residual"] = _residual(result, the_plan, volume, lab)
+        if overlay is not None:
+            _overlays(overlay, volume, lab, vs, result, the_plan)
+        write_text(out, json.dumps(record, indent=2) + "\n")
+    except ValueError as err:
+        raise _fail(str(err)) from None
+    status = "[green]converged[/]" if result.converged else "[red]NOT converged[/]"
+    console.print(
+        f"wrote {out}: {status}, GO {result.similarity:.3f}, {result.seconds:.1f} s "
+        + ", ".join(f"{s.name} {s.seconds:.1f} s" for s in result.stages)
+    )
+    for w in result.warnings:
+        console.print(f"[yellow]warning:[/] {w}")
+    if "residual" in record:
+        console.print(record["residual"]["description"])
+
+
+def _residual(result, plan: dict, volume, labels) -> dict:
+    import numpy as np
+
+    from pelvicnav.guide.residual import residual_reduction
+
+    bone = plan["dislocated_bone"]
+    ref = plan.get("reference_bone", "sacrum")
+    values = {"sacrum": 1, "left_hip": 2, "right_hip": 3}
+    if bone not in values or ref not in values:
+        raise ValueError(f"plan names an unknown bone: {bone!r} / {ref!r}")
+    centroid = volume.world_points(np.argwhere(labels == values[bone])).mean(axis=0)
+    res = residual_reduction(
+        result.poses[ref], result.poses[bone], plan["target_from_current"], centroid
+    )
+    return {
+        "bone": bone,
+        "reference_bone": ref,
+        "world_transform": np.asarray(res.transform).tolist(),
+        "distance_mm": res.distance_mm,
+        "angle_deg": res.angle_deg,
+        "description": res.describe(),
+    }
+
+
+def _overlays(folder: Path, volume, labels, views, result, plan) -> None:
+    from pelvicnav.drr.attenuation import bone_models
+    from pelvicnav.guide.overlay import bone_edges, write_overlay
+
+    folder.mkdir(parents=True, exist_ok=True)
+    models = bone_models(volume, labels, sample_mm=1.0)
+    for k, view in enumerate(views):
+        P = result.projections[k] if len(result.projections) > k else view.projection_matrix
+        shape = view.image.shape
+        edges = {b: bone_edges(models[b], result.poses[b], P, shape) for b in models}
+        target = None
+        if plan is not None:
+            ref = plan.get("reference_bone", "sacrum")
+            T = result.poses[ref] @ plan["target_from_current"]
+            target = bone_edges(models[plan["dislocated_bone"]], T, P, shape)
+        write_overlay(folder / f"overlay_{view.name}.png", view.image, edges, target=target,
+                      title=f"{view.name}: registered (yellow), target (green)")  # fmt: skip
+
+
 @app.command("demo")
 def demo(
     out: Annotated[Path, typer.Option(help="Folder for the demo's figures.")] = Path("demo-output"),

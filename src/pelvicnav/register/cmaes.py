@@ -59,6 +59,7 @@ def minimize_cmaes(
     max_generations: int = 100,
     tol_fun: float = 1e-4,
     tol_x: float = 0.01,
+    bounds: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> CMAESResult:
     """Minimise a batched objective with CMA-ES.
 
@@ -78,6 +79,8 @@ def minimize_cmaes(
     tol_fun, tol_x : float
         Stop when the objective's range over recent generations, or the step size (in scaled
         units), falls below these.
+    bounds : (lower (d,), upper (d,)), optional
+        Box constraints (pycma's boundary handling): the search range, e.g. the capture range.
 
     Raises
     ------
@@ -99,6 +102,8 @@ def minimize_cmaes(
         "verb_log": 0,
         "verb_disp": 0,
     }
+    if bounds is not None:
+        opts["bounds"] = [list(np.asarray(b, dtype=np.float64)) for b in bounds]
     if scales is not None:
         opts["CMA_stds"] = list(np.asarray(scales, dtype=np.float64))
     es = cma.CMAEvolutionStrategy(x0.tolist(), float(sigma), opts)

@@ -1,0 +1,135 @@
+"""Two-stage multi-body registration: render known poses, perturb, register, check the error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+from pelvicnav.drr.attenuation import MU_WATER_PER_MM
+from pelvicnav.drr.projector import render
+from pelvicnav.drr.volume import Volume
+from pelvicnav.geometry import projection as pj
+from pelvicnav.geometry import transforms as tf
+from pelvicnav.register.multibody import (
+    RegistrationSettings,
+    RegistrationViews,
+    register_multibody,
+)
+
+BONES = ("sacrum", "left_hip", "right_hip")
+# three textured "bones": ellipsoids of different shapes, labels 1-3
+SHAPES = {
+    1: ((0.0, 25.0, 10.0), (28.0, 18.0, 35.0)),
+    2: ((55.0, -5.0, -5.0), (22.0, 30.0, 45.0)),
+    3: ((-55.0, -5.0, -5.0), (20.0, 32.0, 40.0)),
+}
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    rng = np.random.default_rng(0)
+    spacing = 1.5
+    n = (120, 80, 90)
+    origin = -np.array(n) * spacing / 2
+    A = np.diag([spacing] * 3 + [1.0])
+    A[:3, 3] = origin
+    ijk = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1)
+    xyz = ijk * spacing + origin
+    labels = np.zeros(n, dtype=np.uint8)
+    for value, (c, r) in SHAPES.items():
+        q = (xyz - c) / r
+        labels[np.sum(q * q, axis=-1) <= 1] = value
+    texture = gaussian_filter(rng.random(n), 3.0)
+    hu = np.where(labels > 0, 300 + 4000 * (texture - texture.mean()), -1000).astype(np.float32)
+    # a cortical rim: brighter at the label boundary
+    edge = (labels > 0) & (gaussian_filter((labels > 0).astype(float), 1.0) < 0.9)
+    hu[edge] = 1200
+    return Volume(hu, A), labels
+
+
+def _views(ct, labels, truth, carms):
+    mu = MU_WATER_PER_MM * np.maximum(0, 1 + ct.data / 1000.0)
+    vols = [Volume(np.where(labels == v, mu, 0).astype(np.float32), ct.world_from_ijk)
+            for v in (1, 2, 3)]  # fmt: skip
+    poses = np.stack([truth[b] for b in BONES])[None]
+    P = np.stack([c.projection_matrix for c in carms])
+    imgs = render(vols, poses, P, (carms[0].rows, carms[0].cols), step_mm=1.0)[0]
+    return RegistrationViews(tuple(imgs), tuple(P), tuple(tuple(c.pixel_spacing) for c in carms))
+
+
+def _carm(orbit, tilt, **kw):
+    return pj.CArm(rows=128, cols=128, pixel_spacing=(1.6, 1.6), orbit_deg=orbit,
+                   tilt_deg=tilt, **kw)  # fmt: skip
+
+
+FAST = RegistrationSettings(
+    factors=(2, 1),
+    populations=(40, 30),
+    sigmas=(4.0, 1.0),
+    max_generations_stage1=(40, 0),
+    max_generations_stage2=(60, 40),
+)
+
+
+def test_two_views_recover_every_bone(phantom):
+    ct, labels = phantom
+    setup = tf.from_params([6.0, -4.0, 5.0], np.deg2rad([2.0, -1.5, 1.0]))
+    moved = tf.from_params([4.0, 3.0, -2.0], np.deg2rad([0.0, 3.0, 0.0]))
+    truth = {"sacrum": setup, "left_hip": setup @ moved, "right_hip": setup}
+    views = _views(ct, labels, truth, [_carm(0, 0), _carm(30, -20)])
+    res = register_multibody(ct, labels, views, seed=1, settings=FAST)
+    for value, b in zip((1, 2, 3), BONES, strict=True):
+        c = np.asarray(SHAPES[value][0])
+        err = np.linalg.norm(tf.apply(res.poses[b], c[None]) - tf.apply(truth[b], c[None]))
+        assert err < 1.0, (b, err)
+    assert res.similarity > 0.5
+    record = res.to_json()
+    assert set(record["poses"]) == set(BONES)
+    assert [s["name"] for s in record["stages"]] == ["stage 1", "stage 2"]
+    assert record["stages"][1]["evaluations"] > 0
+
+
+def test_nine_dof_single_view_fixes_the_projection_of_landmarks(phantom):
+    ct, labels = phantom
+    truth = {b: tf.from_params([3.0, -2.0, 4.0], np.deg2rad([1.0, 0.0, -1.0])) for b in BONES}
+    true = _carm(0, 0, source_to_detector=1112.0, principal_point=(70.0, 58.0))
+    nominal = _carm(0, 0)
+    views = _views(ct, labels, truth, [true])
+    views = RegistrationViews(views.images, (nominal.projection_matrix,), views.pixel_spacing)
+    settings = RegistrationSettings(
+        dof=9, factors=(2, 1), populations=(40, 30), max_generations_stage1=(60, 40),
+        max_generations_stage2=(0, 0), stage2=False,
+    )  # fmt: skip
+    res = register_multibody(ct, labels, views, seed=2, settings=settings)
+    pts = np.concatenate([np.asarray(c)[None] + np.diag(r) * s
+                          for c, r in SHAPES.values() for s in (-0.8, 0.8)])  # fmt: skip
+    before = pj.project(nominal.projection_matrix, tf.apply(truth["sacrum"], pts))
+    after = pj.project(res.projections[0], tf.apply(res.poses["sacrum"], pts))
+    exact = pj.project(true.projection_matrix, tf.apply(truth["sacrum"], pts))
+    pde_before = np.median(np.linalg.norm(before - exact, axis=1)) * 1.6
+    pde_after = np.median(np.linalg.norm(after - exact, axis=1)) * 1.6
+    assert pde_before > 5.0
+    assert pde_after < 2.0
+
+
+def test_bad_input(phantom):
+    ct, labels = phantom
+    img = np.zeros((64, 64))
+    P = _carm(0, 0).projection_matrix
+    with pytest.raises(ValueError, match="singular"):
+        RegistrationViews((img,), (np.zeros((3, 4)),), ((1.0, 1.0),))
+    with pytest.raises(ValueError, match="NaN"):
+        RegistrationViews((np.full((64, 64), np.nan),), (P,), ((1.0, 1.0),))
+    with pytest.raises(ValueError, match="same shape"):
+        RegistrationViews((img, np.zeros((32, 64))), (P, P), ((1.0, 1.0),) * 2)
+    views = RegistrationViews((img,), (P,), ((1.0, 1.0),))
+    with pytest.raises(ValueError, match="no voxel of right_hip"):
+        register_multibody(ct, np.where(labels == 3, 0, labels), views, settings=FAST)
+    with pytest.raises(ValueError, match="label map shape"):
+        register_multibody(ct, labels[:-1], views, settings=FAST)
+    with pytest.raises(ValueError, match="exactly one view"):
+        two = RegistrationViews((img, img), (P, P), ((1.0, 1.0),) * 2)
+        register_multibody(ct, labels, two, settings=RegistrationSettings(dof=9))
+    with pytest.raises(ValueError, match="dof"):
+        RegistrationSettings(dof=7)
