@@ -32,7 +32,8 @@ def test_edges_trace_the_outline_and_move_with_the_pose(tmp_path):
     shifted[:3, 3] = [5.0, 0.0, 0.0]  # 5 mm along x moves the outline by 5 * magnification px
     rc2 = np.argwhere(bone_edges(model, shifted, P, (96, 96)))
     assert abs(abs(rc2[:, 1].mean() - rc[:, 1].mean()) - 5.0 * 1100 / 600) < 1.0
+    target = bone_edges(model, shifted, P, (96, 96))
     png = write_overlay(tmp_path / "o.png", np.random.default_rng(0).random((96, 96)),
-                        {"ball": edges}, target=bone_edges(model, shifted, P, (96, 96)))  # fmt: skip
+                        {"ball": edges}, target=target)  # fmt: skip
     assert png.read_bytes()[:4] == b"\x89PNG"
     assert not list(tmp_path.glob("*.part"))
