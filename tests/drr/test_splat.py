@@ -56,12 +56,14 @@ def test_point_model_conserves_mass_and_first_moment():
     assert point_model(vol, (2, 2, 1)).spacing == pytest.approx(2.0)
 
 
-def test_uniform_ellipsoid_matches_the_closed_form():
+@pytest.mark.parametrize("method", ["tent", "fast"])
+def test_uniform_ellipsoid_matches_the_closed_form(method):
     radii, centre = (60.0, 40.0, 30.0), np.array([5.0, -3.0, 2.0])
     model = point_model(_ellipsoid_volume(radii, centre))
     for orbit, tilt in ((0, 0), (20, -10), (60, 25)):
         carm = pj.CArm(rows=48, cols=48, pixel_spacing=(4.0, 4.0), orbit_deg=orbit, tilt_deg=tilt)
-        img = splat([model], np.eye(4)[None, None], carm.projection_matrix[None], (48, 48))[0, 0]
+        P = carm.projection_matrix[None]
+        img = splat([model], np.eye(4)[None, None], P, (48, 48), method=method)[0, 0]
         source, dirs = ray_directions(carm.projection_matrix, 48, 48)
         exact = MU * _chords(source, dirs, radii, centre)
         # the splat is a DRR blurred by about one sample: compare with the blurred closed form
@@ -74,7 +76,8 @@ def test_uniform_ellipsoid_matches_the_closed_form():
         assert img.sum() == pytest.approx(exact.sum(), rel=0.01)
 
 
-def test_agrees_with_the_ray_caster_for_posed_batched_bones():
+@pytest.mark.parametrize("method", ["tent", "fast"])
+def test_agrees_with_the_ray_caster_for_posed_batched_bones(method):
     rng = np.random.default_rng(1)
     vols = []
     for c in ((-30.0, 0.0, 0.0), (30.0, 10.0, -5.0)):
@@ -92,7 +95,7 @@ def test_agrees_with_the_ray_caster_for_posed_batched_bones():
             np.stack([tf.from_params([0.0, 5.0, 0.0], [0.0, 0.0, 0.2]), np.eye(4)]),
         ]
     )
-    fast = splat(models, poses, P, (64, 64))
+    fast = splat(models, poses, P, (64, 64), method=method)
     slow = render(vols, poses, P, (64, 64), step_mm=0.5)
     assert fast.shape == slow.shape == (2, 2, 64, 64)
     for b in range(2):
@@ -101,7 +104,9 @@ def test_agrees_with_the_ray_caster_for_posed_batched_bones():
             inner = ref > 0.3 * ref.max()
             # the splat is blurred by one pixel, the ray caster is not: close inside
             rel = np.abs(fast[b, k][inner] - ref[inner]) / ref[inner]
-            assert np.median(rel) < 0.01 and np.percentile(rel, 95) < 0.05
+            # "fast" blurs with one kernel width per image (the first bone's depth)
+            tol = 0.01 if method == "tent" else 0.025
+            assert np.median(rel) < tol and np.percentile(rel, 95) < 4 * tol + 0.01
             assert fast[b, k].sum() == pytest.approx(ref.sum(), rel=0.01)
 
 

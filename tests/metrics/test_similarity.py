@@ -92,7 +92,7 @@ def test_fast_go_equals_equation_10():
     moving = rng.random((2, 3, 40, 50)).astype(np.float32)
     moving[0, 0] = fixed  # identical image: GO about 1
     go = GradientOrientation(fixed)
-    np.testing.assert_allclose(go(moving), gradient_orientation(fixed, moving), rtol=1e-5)
+    np.testing.assert_allclose(go(moving), gradient_orientation(fixed, moving), rtol=1e-4)
     with pytest.raises(ValueError, match="shape"):
         go(np.zeros((3, 40, 49)))
     with pytest.raises(ValueError, match="NaN"):

@@ -111,8 +111,9 @@ def gradient_ncc(fixed: ArrayLike, moving: ArrayLike) -> NDArray[np.float64]:
 class GradientOrientation:
     """GO against one fixed image, fast for many moving images (numba, parallel over images).
 
-    Identical to :func:`gradient_orientation` (same Sobel gradients, median thresholds and
-    ``N_LB``); the fixed image's gradients and threshold are computed once.
+    Equation 10 like :func:`gradient_orientation` (same Sobel gradients, median thresholds and
+    ``N_LB``); the fixed image's gradients and threshold are computed once, and the per-pixel
+    weight comes from a fine table (relative difference < 1e-5 on whole images).
 
     Parameters
     ----------
@@ -143,11 +144,15 @@ class GradientOrientation:
         if not np.all(np.isfinite(flat)):
             raise ValueError("images contain NaN or infinity")
         out = np.empty(len(flat))
-        _go_kernel()(self._fx, self._fy, self._fmag, self._mask, flat, out)
+        _go_kernel()(self._fx, self._fy, self._fmag, self._mask, flat, _LUT, out)
         return out.reshape(lead)
 
 
 _GO = None
+# GO weight (2 - ln(psi + 1)) / 2 tabulated in s = sin(psi / 2) on [0, 1]; linear interpolation
+# error < 2e-6 except within 1e-4 of s = 1 (opposite gradients), where it is < 1e-3.
+_S = np.linspace(0.0, 1.0, 16385)
+_LUT = (2.0 - np.log(2.0 * np.arcsin(_S) + 1.0)) / 2.0
 
 
 def _go_kernel():
@@ -161,7 +166,8 @@ def _compile_go():  # pragma: no cover - compiled code
     import numba as nb
 
     @nb.njit(parallel=True, cache=True)
-    def kernel(fx, fy, fmag, mask, moving, out):
+    def kernel(fx, fy, fmag, mask, moving, lut, out):
+        nlut = lut.shape[0]
         n, H, W = moving.shape
         n_lb = 0.5 * H * W
         for b in nb.prange(n):
@@ -183,7 +189,10 @@ def _compile_go():  # pragma: no cover - compiled code
                     cc = np.float64(img[r2, c2]) - img[r0, c2]
                     gy[r, c] = (a + 2.0 * bb + cc) / 8.0
             mag = np.sqrt(gx * gx + gy * gy)
-            t = np.median(mag)
+            flat = mag.ravel().copy()
+            half = flat.size // 2
+            part = np.partition(flat, half)  # O(n) selection, not a sort
+            t = part[half] if flat.size % 2 == 1 else 0.5 * (part[half] + np.max(part[:half]))
             total = 0.0
             count = 0
             for r in range(H):
@@ -193,8 +202,12 @@ def _compile_go():  # pragma: no cover - compiled code
                         cos = (fx[r, c] * gx[r, c] + fy[r, c] * gy[r, c]) / max(
                             fmag[r, c] * mag[r, c], 1e-300
                         )
-                        cos = min(1.0, max(-1.0, cos))
-                        total += (2.0 - np.log(np.arccos(cos) + 1.0)) / 2.0
+                        # weight (2 - ln(psi + 1)) / 2 from a table in s = sin(psi / 2), which
+                        # is smooth where psi is small (the aligned, decisive pixels)
+                        x = np.sqrt(max(0.0, 0.5 * (1.0 - cos))) * (nlut - 1)
+                        i = min(int(x), nlut - 2)
+                        f = x - i
+                        total += (1.0 - f) * lut[i] + f * lut[i + 1]
             out[b] = total / max(count, n_lb)
 
     return kernel
