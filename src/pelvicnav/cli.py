@@ -290,6 +290,46 @@ def study_population(
     console.print(f"wrote {out / 'sizes.csv'}, {out / 'sizes.md'}, {out / 'population.png'}")
 
 
+@study_app.command("registration")
+def study_registration(
+    out: Annotated[Path, typer.Option(help="Output folder (created).")],
+    atlas: PopulationOption = None,
+    cases: Annotated[int, typer.Option(help="Number of simulated cases.")] = 20,
+    dof: Annotated[int, typer.Option(help="6 (two views, P known) or 9 (one view).")] = 6,
+    seed: Annotated[int, typer.Option(help="Seed of the study.")] = 0,
+) -> None:
+    """Registration accuracy on simulated cases (in-/out-of-plane error per bone, PDE for 9 DoF)."""
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from pelvicnav.io.atlas import AtlasNotFoundError
+    from pelvicnav.studies.registration import (
+        RegistrationStudySettings,
+        run_registration_study,
+        summarise,
+    )
+
+    try:
+        if dof not in (6, 9):
+            raise ValueError(f"--dof must be 6 or 9, got {dof}")
+        if cases < 1:
+            raise ValueError(f"--cases must be >= 1, got {cases}")
+        a = _population(atlas)
+        views = ("ap", "oblique30") if dof == 6 else ("ap",)
+        settings = RegistrationStudySettings(n_cases=cases, seed=seed, dof=dof, views=views)
+        with Progress() as bar:
+            task = bar.add_task("cases", total=cases)
+            rows = run_registration_study(
+                a, out, settings, progress=lambda done, total: bar.update(task, completed=done)
+            )
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    console = Console()
+    for row in summarise(rows):
+        console.print(row)
+    console.print(f"wrote {out / 'cases.csv'}, {out / 'summary.csv'}")
+
+
 @study_app.command("ssm-reference")
 def study_ssm_reference(atlas: AtlasOption = None) -> None:
     """Compare our per-bone SSMs with the statismo models shipped with the atlas."""
@@ -459,8 +499,9 @@ def register(
                 bar.update(tasks[stage], completed=done)
 
             result = register_multibody(
-                volume, lab, rv, seed=seed, settings=settings, progress=report
-            )
+                volume, lab, rv, seed=seed, settings=settings, progress=report,
+                dislocated=None if the_plan is None else the_plan["dislocated_bone"],
+            )  # fmt: skip
         record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed}
         record |= result.to_json()
         if the_plan is not None:

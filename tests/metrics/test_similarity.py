@@ -97,3 +97,15 @@ def test_fast_go_equals_equation_10():
         go(np.zeros((3, 40, 49)))
     with pytest.raises(ValueError, match="NaN"):
         go(np.full((40, 50), np.nan))
+
+
+def test_gradient_ncc_class_equals_function():
+    from pelvicnav.metrics.similarity import GradientNCC
+
+    rng = np.random.default_rng(4)
+    fixed = gaussian_filter(rng.random((30, 40)), 2)
+    moving = gaussian_filter(rng.random((3, 30, 40)), (0, 2, 2))
+    moving[0] = 3 * fixed + 1
+    g = GradientNCC(fixed)
+    np.testing.assert_allclose(g(moving), gradient_ncc(fixed, moving), atol=1e-12)
+    assert g(moving)[0] == pytest.approx(1.0)

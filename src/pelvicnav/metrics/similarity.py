@@ -20,7 +20,14 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["GradientOrientation", "gradient_ncc", "gradient_orientation", "ncc", "sobel_gradients"]
+__all__ = [
+    "GradientNCC",
+    "GradientOrientation",
+    "gradient_ncc",
+    "gradient_orientation",
+    "ncc",
+    "sobel_gradients",
+]
 
 
 def _check_pair(fixed: ArrayLike, moving: ArrayLike) -> tuple[NDArray, NDArray]:
@@ -211,3 +218,38 @@ def _compile_go():  # pragma: no cover - compiled code
             out[b] = total / max(count, n_lb)
 
     return kernel
+
+
+class GradientNCC:
+    """Gradient NCC (:func:`gradient_ncc`) against one fixed image, for many moving images.
+
+    The fixed image's normalised gradients are computed once.
+    """
+
+    def __init__(self, fixed: ArrayLike) -> None:
+        f = np.asarray(fixed, dtype=np.float64)
+        _check_pair(f, f)
+        self.shape = f.shape
+        self._g = []
+        for g in sobel_gradients(f):
+            z = g - g.mean()
+            n = np.sqrt(np.sum(z * z))
+            self._g.append(z / n if n > 0 else z)
+
+    def __call__(self, moving: ArrayLike) -> NDArray[np.float64]:
+        m = np.asarray(moving, dtype=np.float64)
+        if m.ndim < 2 or m.shape[-2:] != self.shape:
+            raise ValueError(
+                f"moving images must have shape (..., {self.shape[0]}, {self.shape[1]}), "
+                f"got {m.shape}"
+            )
+        if not np.all(np.isfinite(m)):
+            raise ValueError("images contain NaN or infinity")
+        total = 0.0
+        for fixed, g in zip(self._g, sobel_gradients(m), strict=True):
+            z = g - g.mean(axis=(-2, -1), keepdims=True)
+            n = np.sqrt(np.sum(z * z, axis=(-2, -1)))
+            total = total + np.where(
+                n > 0, np.sum(z * fixed, axis=(-2, -1)) / np.where(n > 0, n, 1), 0
+            )
+        return 0.5 * total
