@@ -275,26 +275,42 @@ def _compile_fast():  # pragma: no cover - compiled code
     import numba as nb
 
     @nb.njit(fastmath=True, cache=True)
-    def blur_axis(src, dst, radius, axis):
-        n0, n1 = src.shape
+    def tent(radius):
         R = int(np.floor(radius))
         w = np.empty(2 * R + 1)
         for j in range(-R, R + 1):
             w[j + R] = max(0.0, 1.0 - abs(j) / radius) if radius > 0 else (1.0 if j == 0 else 0.0)
-        w /= w.sum()
+        return w / w.sum(), R
+
+    @nb.njit(fastmath=True, cache=True)
+    def blur_rows(src, dst, radius):
+        """Horizontal tent blur; rows that are all zero stay zero (skipped)."""
+        w, R = tent(radius)
+        n0, n1 = src.shape
         for a in range(n0):
+            row = src[a]
+            if row.max() == 0.0 and row.min() == 0.0:
+                dst[a, :] = 0.0
+                continue
             for c in range(n1):
                 acc = 0.0
-                for j in range(-R, R + 1):
-                    if axis == 1:
-                        cc = c + j
-                        if 0 <= cc < n1:
-                            acc += w[j + R] * src[a, cc]
-                    else:
-                        aa = a + j
-                        if 0 <= aa < n0:
-                            acc += w[j + R] * src[aa, c]
+                for j in range(max(-R, -c), min(R, n1 - 1 - c) + 1):
+                    acc += w[j + R] * row[c + j]
                 dst[a, c] = acc
+
+    @nb.njit(fastmath=True, cache=True)
+    def blur_cols_out(src, out, radius, pad):
+        """Vertical tent blur written straight into the (unpadded) output image."""
+        w, R = tent(radius)
+        n0 = src.shape[0]
+        rows, cols = out.shape
+        for r in range(rows):
+            a = r + pad
+            for c in range(cols):
+                acc = 0.0
+                for j in range(max(-R, -a), min(R, n0 - 1 - a) + 1):
+                    acc += w[j + R] * src[a + j, c + pad]
+                out[r, c] = acc
 
     @nb.njit(parallel=True, fastmath=True, cache=True)
     def kernel(M, pts, mass, offsets, intr, radius, pad, out):
@@ -332,10 +348,7 @@ def _compile_fast():  # pragma: no cover - compiled code
                     img[r0 + 1, c0] += value * (1.0 - a) * bb
                     img[r0 + 1, c0 + 1] += value * a * bb
             tmp = np.empty_like(img)
-            blur_axis(img, tmp, radius[b, k, 0], 1)
-            blur_axis(tmp, img, radius[b, k, 1], 0)
-            for r in range(rows):
-                for c in range(cols):
-                    out[b, k, r, c] = img[r + pad, c + pad]
+            blur_rows(img, tmp, radius[b, k, 0])
+            blur_cols_out(tmp, out[b, k], radius[b, k, 1], pad)
 
     return kernel

@@ -169,8 +169,9 @@ def run_registration_study(
         )
         t_sim = time.perf_counter() - t0
         res = register_multibody(
-            case["ct"], case["labels"], case["views"], seed=cfg.seed + i, settings=reg
-        )
+            case["ct"], case["labels"], case["views"], seed=cfg.seed + i, settings=reg,
+            dislocated=case["bone"],  # known from the plan
+        )  # fmt: skip
         for r in _errors(case, res):
             rows.append(
                 {
