@@ -6,50 +6,20 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
+from helpers.ellipsoids import MU, chords, ellipsoid_volume
 from pelvicnav.drr.projector import downsample_projection, ray_directions, render
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 
-MU = 0.02  # 1/mm
-
-
-def _ellipsoid_volume(radii, centre, spacing=1.0, extent=70.0, supersample=3):
-    """Partial-volume voxelisation of a uniform ellipsoid (fraction inside per voxel x MU)."""
-    n = int(2 * extent / spacing) + 1
-    origin = np.asarray(centre) - extent
-    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
-    ax = np.arange(n) * spacing
-    frac = np.zeros((n, n, n))
-    for a in sub:
-        for b in sub:
-            for c in sub:
-                x = ax[:, None, None] + a * spacing + origin[0] - centre[0]
-                y = ax[None, :, None] + b * spacing + origin[1] - centre[1]
-                z = ax[None, None, :] + c * spacing + origin[2] - centre[2]
-                frac += (x / radii[0]) ** 2 + (y / radii[1]) ** 2 + (z / radii[2]) ** 2 <= 1
-    return Volume.from_spacing(MU * frac / supersample**3, [spacing] * 3, origin)
-
-
-def _chords(source, dirs, radii, centre):
-    """Exact chord length of each ray through the ellipsoid (0 if it misses)."""
-    r = np.asarray(radii)
-    o = (source - centre) / r
-    d = dirs / r
-    a = np.sum(d * d, -1)
-    b = 2 * np.sum(o * d, -1)
-    c = np.sum(o * o) - 1
-    disc = b * b - 4 * a * c
-    return np.where(disc > 0, np.sqrt(np.maximum(disc, 0)) / a, 0.0)
-
 
 def test_uniform_ellipsoid_matches_the_closed_form():
     radii, centre = (60.0, 40.0, 30.0), np.array([5.0, -3.0, 2.0])
-    vol = _ellipsoid_volume(radii, centre)
+    vol = ellipsoid_volume(radii, centre)
     carm = pj.CArm(rows=48, cols=48, pixel_spacing=(4.0, 4.0), orbit_deg=20, tilt_deg=-10)
     drr = render([vol], np.eye(4)[None, None], carm.projection_matrix[None], (48, 48))[0, 0]
     source, dirs = ray_directions(carm.projection_matrix, 48, 48)
-    exact = MU * _chords(source, dirs, radii, centre)
+    exact = MU * chords(source, dirs, radii, centre)
     # Interior pixels: rays that cross the body well away from grazing incidence, where the 1 mm
     # voxelisation of the surface (not the projector) dominates the difference.
     interior = exact > 0.6 * exact.max()
@@ -58,7 +28,7 @@ def test_uniform_ellipsoid_matches_the_closed_form():
     assert np.abs(rel).max() < 0.01
     assert abs(rel.mean()) < 0.002
     # Rays that miss the body by more than two voxels see nothing at all.
-    far = _chords(source, dirs, np.asarray(radii) + 2.0, centre) == 0
+    far = chords(source, dirs, np.asarray(radii) + 2.0, centre) == 0
     assert far.sum() > 100
     assert np.abs(drr[far]).max() == 0.0
 

@@ -6,39 +6,12 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from helpers.ellipsoids import MU, chords, ellipsoid_volume
 from pelvicnav.drr.projector import ray_directions, render
 from pelvicnav.drr.splat import PointModel, point_model, splat
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
-
-MU = 0.02
-
-
-def _ellipsoid_volume(radii, centre, spacing=1.0, extent=70.0, supersample=3):
-    """Partial-volume voxelisation of a uniform ellipsoid (fraction inside x MU)."""
-    n = int(2 * extent / spacing) + 1
-    origin = np.asarray(centre) - extent
-    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
-    ax = np.arange(n) * spacing
-    frac = np.zeros((n, n, n))
-    for a in sub:
-        for b in sub:
-            for c in sub:
-                x = ax[:, None, None] + a * spacing + origin[0] - centre[0]
-                y = ax[None, :, None] + b * spacing + origin[1] - centre[1]
-                z = ax[None, None, :] + c * spacing + origin[2] - centre[2]
-                frac += (x / radii[0]) ** 2 + (y / radii[1]) ** 2 + (z / radii[2]) ** 2 <= 1
-    return Volume.from_spacing(MU * frac / supersample**3, [spacing] * 3, origin)
-
-
-def _chords(source, dirs, radii, centre):
-    r = np.asarray(radii)
-    o = (source - centre) / r
-    d = dirs / r
-    a, b, c = np.sum(d * d, -1), 2 * np.sum(o * d, -1), np.sum(o * o) - 1
-    disc = b * b - 4 * a * c
-    return np.where(disc > 0, np.sqrt(np.maximum(disc, 0)) / a, 0.0)
 
 
 def test_point_model_conserves_mass_and_first_moment():
@@ -59,13 +32,13 @@ def test_point_model_conserves_mass_and_first_moment():
 @pytest.mark.parametrize("method", ["tent", "fast"])
 def test_uniform_ellipsoid_matches_the_closed_form(method):
     radii, centre = (60.0, 40.0, 30.0), np.array([5.0, -3.0, 2.0])
-    model = point_model(_ellipsoid_volume(radii, centre))
+    model = point_model(ellipsoid_volume(radii, centre))
     for orbit, tilt in ((0, 0), (20, -10), (60, 25)):
         carm = pj.CArm(rows=48, cols=48, pixel_spacing=(4.0, 4.0), orbit_deg=orbit, tilt_deg=tilt)
         P = carm.projection_matrix[None]
         img = splat([model], np.eye(4)[None, None], P, (48, 48), method=method)[0, 0]
         source, dirs = ray_directions(carm.projection_matrix, 48, 48)
-        exact = MU * _chords(source, dirs, radii, centre)
+        exact = MU * chords(source, dirs, radii, centre)
         # the splat is a DRR blurred by about one sample: compare with the blurred closed form
         interior = exact > 0.6 * exact.max()
         rel = (img[interior] - exact[interior]) / exact[interior]
@@ -81,7 +54,7 @@ def test_agrees_with_the_ray_caster_for_posed_batched_bones(method):
     rng = np.random.default_rng(1)
     vols = []
     for c in ((-30.0, 0.0, 0.0), (30.0, 10.0, -5.0)):
-        v = _ellipsoid_volume((25.0, 18.0, 30.0), np.asarray(c), extent=40.0)
+        v = ellipsoid_volume((25.0, 18.0, 30.0), np.asarray(c), extent=40.0)
         tex = gaussian_filter(rng.random(v.shape), 5.0).astype(np.float32)
         tex = (tex - tex.min()) / np.ptp(tex)
         vols.append(Volume(v.data * (0.5 + tex), v.world_from_ijk))
@@ -123,7 +96,7 @@ def test_bad_input():
 
 
 def test_per_candidate_projections_match_shared_ones():
-    model = point_model(_ellipsoid_volume((20.0, 15.0, 25.0), np.zeros(3), extent=30.0))
+    model = point_model(ellipsoid_volume((20.0, 15.0, 25.0), np.zeros(3), extent=30.0))
     P1 = pj.CArm(rows=32, cols=32, pixel_spacing=(6.0, 6.0)).projection_matrix
     P2 = pj.CArm(rows=32, cols=32, pixel_spacing=(6.0, 6.0), orbit_deg=40).projection_matrix
     poses = np.stack([np.eye(4)[None], tf.from_params([5.0, 0, 0], [0, 0, 0.1])[None]])

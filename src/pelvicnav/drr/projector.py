@@ -15,6 +15,7 @@ Pixel convention: ``(u, v)`` = (column, row), pixel centres at integers (see
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -122,20 +123,11 @@ def render(
     offsets = np.cumsum([0] + [v.data.size for v in volumes[:-1]]).astype(np.int64)
     dims = np.array([v.shape for v in volumes], dtype=np.int64)
     out = np.zeros((T.shape[0], len(Ps), rows, cols), dtype=np.float32)
-    _kernel()(flat, offsets, dims, M, sources, dirs, h, out)
+    _compile()(flat, offsets, dims, M, sources, dirs, h, out)
     return out
 
 
-_KERNEL = None
-
-
-def _kernel():
-    global _KERNEL
-    if _KERNEL is None:
-        _KERNEL = _compile()
-    return _KERNEL
-
-
+@functools.cache  # compile once per process, on first use
 def _compile():  # pragma: no cover - compiled code
     import numba
 

@@ -22,6 +22,7 @@ Kernel: numba-parallel over ``(b, k)`` image pairs (each thread owns its output 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -165,7 +166,7 @@ def splat(
     intr = np.ascontiguousarray(np.broadcast_to(intr, (T.shape[0], n_views, 4)))
     out = np.zeros((T.shape[0], n_views, rows, cols), dtype=np.float32)
     if method == "tent":
-        _kernel()(M, pts, mass, offsets, spacing, intr, out)
+        _compile()(M, pts, mass, offsets, spacing, intr, out)
         return out
     if method != "fast":
         raise ValueError(f"method must be 'fast' or 'tent', got {method!r}")
@@ -177,20 +178,11 @@ def splat(
     r = np.where(s_px < 1.0, s_px * np.ceil(1.0 / np.maximum(s_px, 1e-9)), s_px)
     radius = np.ascontiguousarray(np.sqrt(np.maximum(r**2 - 1.0, 0.0)))
     pad = int(np.ceil(radius.max())) + 2
-    _fast_kernel()(np.ascontiguousarray(M), pts, mass, offsets, intr, radius, pad, out)
+    _compile_fast()(np.ascontiguousarray(M), pts, mass, offsets, intr, radius, pad, out)
     return out
 
 
-_KERNEL = None
-
-
-def _kernel():
-    global _KERNEL
-    if _KERNEL is None:
-        _KERNEL = _compile()
-    return _KERNEL
-
-
+@functools.cache  # compile once per process, on first use
 def _compile():  # pragma: no cover - compiled code
     import numba as nb
 
@@ -261,16 +253,7 @@ def _compile():  # pragma: no cover - compiled code
     return kernel
 
 
-_FAST = None
-
-
-def _fast_kernel():
-    global _FAST
-    if _FAST is None:
-        _FAST = _compile_fast()
-    return _FAST
-
-
+@functools.cache  # compile once per process, on first use
 def _compile_fast():  # pragma: no cover - compiled code
     import numba as nb
 

@@ -17,6 +17,8 @@ Gradients are Sobel derivatives.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -151,24 +153,17 @@ class GradientOrientation:
         if not np.all(np.isfinite(flat)):
             raise ValueError("images contain NaN or infinity")
         out = np.empty(len(flat))
-        _go_kernel()(self._fx, self._fy, self._fmag, self._mask, flat, _LUT, out)
+        _compile_go()(self._fx, self._fy, self._fmag, self._mask, flat, _LUT, out)
         return out.reshape(lead)
 
 
-_GO = None
 # GO weight (2 - ln(psi + 1)) / 2 tabulated in s = sin(psi / 2) on [0, 1]; linear interpolation
 # error < 2e-6 except within 1e-4 of s = 1 (opposite gradients), where it is < 1e-3.
 _S = np.linspace(0.0, 1.0, 16385)
 _LUT = (2.0 - np.log(2.0 * np.arcsin(_S) + 1.0)) / 2.0
 
 
-def _go_kernel():
-    global _GO
-    if _GO is None:
-        _GO = _compile_go()
-    return _GO
-
-
+@functools.cache  # compile once per process, on first use
 def _compile_go():  # pragma: no cover - compiled code
     import numba as nb
 
