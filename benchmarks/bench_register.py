@@ -79,7 +79,9 @@ def run() -> dict:
     }
     # subsequent frame: stage 2 at the fine level only, warm-started from the last result
     warm = mb.RegistrationSettings(
-        max_generations_stage1=(0, 0), max_generations_stage2=(0, 30), stage2_sweeps=1
+        max_generations_stage1=(0, 0),
+        max_generations_stage2=(0, cfg.max_generations_stage2[-1]),
+        stage2_sweeps=1,
     )
     t = measure(
         lambda: mb.register_multibody(

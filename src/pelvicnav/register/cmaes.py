@@ -46,6 +46,7 @@ class CMAESResult:
     converged: bool
     stop: dict = field(default_factory=dict)
     history: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    final_std: float = np.inf
 
 
 def minimize_cmaes(
@@ -131,4 +132,5 @@ def minimize_cmaes(
         converged=converged,
         stop=stop,
         history=np.asarray(history),
+        final_std=float(np.max(es.result.stds)),
     )

@@ -104,8 +104,8 @@ class RegistrationSettings:
     factors: tuple[int, ...] = (4, 2)
     populations: tuple[int, ...] = (100, 100)
     sigmas: tuple[float, ...] = (4.0, 1.0)
-    max_generations_stage1: tuple[int, ...] = (30, 0)
-    max_generations_stage2: tuple[int, ...] = (40, 30)
+    max_generations_stage1: tuple[int, ...] = (25, 0)
+    max_generations_stage2: tuple[int, ...] = (30, 20)
     stage2: bool = True
     min_similarity: float = 0.05
     stage1_range: tuple[float, float] = (40.0, 10.0)
@@ -183,6 +183,7 @@ class RegistrationViews:
 
 
 PLATEAU = 1e-3
+COLLAPSED = 0.5  # mm or degrees
 
 
 def _plateaued(history: NDArray) -> bool:
@@ -197,12 +198,16 @@ class StageResult:
     name: str
     levels: list[CMAESResult]
     seconds: float
+    n_final: int = 1
 
     @property
     def converged(self) -> bool:
-        """Every level stopped on a tolerance or had plateaued: its best GO improved by less than
-        ``PLATEAU`` over its last ten generations."""
-        return all(r.converged or _plateaued(r.history) for r in self.levels)
+        """The runs that produced the final estimate (the last level; in stage 2 the last sweep,
+        one run per bone) each stopped on a tolerance, collapsed (largest search standard
+        deviation below ``COLLAPSED`` mm or degrees) or plateaued (best similarity improved by
+        less than ``PLATEAU`` over its last ten generations)."""
+        final = self.levels[-self.n_final :] if self.levels else []
+        return all(r.converged or r.final_std < COLLAPSED or _plateaued(r.history) for r in final)
 
     @property
     def evaluations(self) -> int:
@@ -258,6 +263,7 @@ class MultiBodyResult:
                             "generations": r.generations,
                             "evaluations": r.evaluations,
                             "converged": r.converged,
+                            "final_std": r.final_std,
                             "stop": {k: str(v) for k, v in r.stop.items()},
                         }
                         for r in s.levels
@@ -517,7 +523,10 @@ def register_multibody(
                 progress("stage 2", lv + 1, len(cfg.factors))
         final = stage2_poses(y[None])[0]
         poses = {b: final[i] for i, b in enumerate(bones)}
-        stages.append(StageResult("stage 2", stage2_levels, time.perf_counter() - t0))
+        n_final = 1 if cfg.stage2_mode == "joint" else len(bones)
+        stages.append(
+            StageResult("stage 2", stage2_levels, time.perf_counter() - t0, n_final=n_final)
+        )
     # final similarity: all bones at the finest level
     Ps, gos, shape = levels[-1]
     stack = np.stack([poses[b] for b in bones])[None]
