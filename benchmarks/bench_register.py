@@ -39,7 +39,7 @@ def run() -> dict:
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
     }
     t0 = time.perf_counter()
-    models = mb._level_models(case["ct"], case["labels"], cfg.factors)
+    models = mb.level_models(case["ct"], case["labels"], cfg.factors)
     out["bone_models_s"] = time.perf_counter() - t0
     B = 100
     views = case["views"]

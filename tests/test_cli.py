@@ -235,6 +235,9 @@ def test_register_bad_input_writes_nothing(tmp_path):
     write_views(tmp_path, [View("ap", np.zeros((32, 32), np.float32), carm.projection_matrix,
                                 carm.pixel_spacing)])  # fmt: skip
     (tmp_path / "broken.json").write_text("{not json")
+    (tmp_path / "femur.json").write_text(
+        json.dumps({"dislocated_bone": "femur", "target_from_current": np.eye(4).tolist()})
+    )
     out = tmp_path / "result.json"
     base = ["register", "--ct", str(tmp_path / "ct.nii.gz"), "--out", str(out)]
     views = ["--views", str(tmp_path / "views.json")]
@@ -245,6 +248,8 @@ def test_register_bad_input_writes_nothing(tmp_path):
         (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--dof", "7"], "--dof must be"),
         (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--plan",
           str(tmp_path / "broken.json")], "not valid JSON"),
+        (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--plan",
+          str(tmp_path / "femur.json")], "dislocated_bone 'femur' is not one of"),
     ):  # fmt: skip
         res = runner.invoke(app, base + args)
         assert res.exit_code == 2, (args, res.output)

@@ -411,19 +411,21 @@ def simulate(
 
 
 def _read_plan(path: Path) -> dict:
-    import json
-
     import numpy as np
 
-    try:
-        plan = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: file not found") from None
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    from pelvicnav import BONES
+    from pelvicnav.io.jsonfile import read_json
+
+    plan = read_json(path)
+    if not isinstance(plan, dict):
+        raise ValueError(f"{path}: expected a JSON object")
     for key in ("dislocated_bone", "target_from_current"):
         if key not in plan:
             raise ValueError(f"{path}: missing '{key}'")
+    plan.setdefault("reference_bone", "sacrum")
+    for key in ("dislocated_bone", "reference_bone"):
+        if plan[key] not in BONES:
+            raise ValueError(f"{path}: {key} {plan[key]!r} is not one of {BONES}")
     T = np.asarray(plan["target_from_current"], dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"{path}: target_from_current must be a finite 4 x 4 matrix")
@@ -464,6 +466,7 @@ def register(
     from pelvicnav.register.multibody import (
         RegistrationSettings,
         RegistrationViews,
+        level_models,
         register_multibody,
     )
 
@@ -479,9 +482,6 @@ def register(
             raise ValueError(
                 f"{labels}: label map grid {lab.shape} does not match the CT's {data.shape}"
             )
-        for value, bone in ((1, "sacrum"), (2, "left_hip"), (3, "right_hip")):
-            if not np.any(lab == value):
-                raise ValueError(f"{labels}: no voxel of {bone} (label {value})")
         rv = RegistrationViews(
             tuple(v.image for v in vs),
             tuple(v.projection_matrix for v in vs),
@@ -489,6 +489,10 @@ def register(
         )
         settings = RegistrationSettings(dof=dof)
         volume = Volume(np.asarray(data, dtype=np.float32), affine)
+        try:  # one set of bone models for registration and overlays
+            models = level_models(volume, lab, settings.factors)
+        except ValueError as err:
+            raise ValueError(f"{labels}: {err}") from None
         with Progress(console=console) as bar:
             tasks = {
                 "stage 1": bar.add_task("stage 1", total=len(settings.factors)),
@@ -499,7 +503,7 @@ def register(
                 bar.update(tasks[stage], completed=done)
 
             result = register_multibody(
-                volume, lab, rv, seed=seed, settings=settings, progress=report,
+                volume, lab, rv, seed=seed, settings=settings, progress=report, models=models,
                 dislocated=None if the_plan is None else the_plan["dislocated_bone"],
             )  # fmt: skip
         record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed}
@@ -507,7 +511,7 @@ def register(
         if the_plan is not None:
             record["residual"] = _residual(result, the_plan, volume, lab)
         if overlay is not None:
-            _overlays(overlay, volume, lab, vs, result, the_plan)
+            _overlays(overlay, models[-1], vs, result, the_plan)
         write_text(out, json.dumps(record, indent=2) + "\n")
     except ValueError as err:
         raise _fail(str(err)) from None
@@ -525,14 +529,11 @@ def register(
 def _residual(result, plan: dict, volume, labels) -> dict:
     import numpy as np
 
+    from pelvicnav import LABELS
     from pelvicnav.guide.residual import residual_reduction
 
-    bone = plan["dislocated_bone"]
-    ref = plan.get("reference_bone", "sacrum")
-    values = {"sacrum": 1, "left_hip": 2, "right_hip": 3}
-    if bone not in values or ref not in values:
-        raise ValueError(f"plan names an unknown bone: {bone!r} / {ref!r}")
-    centroid = volume.world_points(np.argwhere(labels == values[bone])).mean(axis=0)
+    bone, ref = plan["dislocated_bone"], plan["reference_bone"]
+    centroid = volume.world_points(np.argwhere(labels == LABELS[bone])).mean(axis=0)
     res = residual_reduction(
         result.poses[ref], result.poses[bone], plan["target_from_current"], centroid
     )
@@ -546,20 +547,18 @@ def _residual(result, plan: dict, volume, labels) -> dict:
     }
 
 
-def _overlays(folder: Path, volume, labels, views, result, plan) -> None:
-    from pelvicnav.drr.attenuation import bone_models
+def _overlays(folder: Path, models: dict, views, result, plan) -> None:
+    """One PNG per view; ``models`` are the finest registration level's bone models."""
     from pelvicnav.guide.overlay import bone_edges, write_overlay
 
     folder.mkdir(parents=True, exist_ok=True)
-    models = bone_models(volume, labels, sample_mm=1.0)
     for k, view in enumerate(views):
         P = result.projections[k] if len(result.projections) > k else view.projection_matrix
         shape = view.image.shape
         edges = {b: bone_edges(models[b], result.poses[b], P, shape) for b in models}
         target = None
         if plan is not None:
-            ref = plan.get("reference_bone", "sacrum")
-            T = result.poses[ref] @ plan["target_from_current"]
+            T = result.poses[plan["reference_bone"]] @ plan["target_from_current"]
             target = bone_edges(models[plan["dislocated_bone"]], T, P, shape)
         write_overlay(folder / f"overlay_{view.name}.png", view.image, edges, target=target,
                       title=f"{view.name}: registered (yellow), target (green)")  # fmt: skip

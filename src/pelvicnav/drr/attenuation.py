@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pelvicnav import LABELS
 from pelvicnav.drr.splat import PointModel, point_model
 from pelvicnav.drr.volume import Volume
 
@@ -32,8 +33,7 @@ def bone_models(
     ct_hu: Volume,
     labels: ArrayLike,
     *,
-    bones: Sequence[str] = ("sacrum", "left_hip", "right_hip"),
-    label_values: Sequence[int] = (1, 2, 3),
+    label_values: Mapping[str, int] = LABELS,
     sample_mm: float = 1.0,
 ) -> dict[str, PointModel]:
     """One attenuation model per bone: the CT's mu inside the bone's label, block-summed.
@@ -44,6 +44,7 @@ def bone_models(
         CT in HU (the preoperative CT; its frame is each bone's ``ct`` frame).
     labels : (ni, nj, nk) int
         Label map on the CT grid.
+    label_values : bone name -> label value (default 1 sacrum, 2 left, 3 right innominate)
     sample_mm : float
         Target sample spacing (e.g. half the pyramid level's binning factor, in mm).
 
@@ -58,7 +59,7 @@ def bone_models(
     mu = mu_from_hu(ct_hu.data)
     factors = sample_factors(ct_hu.spacing, sample_mm)
     out = {}
-    for bone, value in zip(bones, label_values, strict=True):
+    for bone, value in label_values.items():
         mask = lab == value
         if not mask.any():
             raise ValueError(f"the label map has no voxel of {bone} (label {value})")

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from pelvicnav.io.jsonfile import read_json
+
 __all__ = ["View", "read_views", "write_views"]
 
 
@@ -122,12 +124,7 @@ def read_views(path: str | os.PathLike) -> tuple[list[View], int]:
         file and the view.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: file not found") from None
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    doc = read_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("views"), list) or not doc["views"]:
         raise ValueError(f"{path}: expected an object with a non-empty 'views' list")
     dof = doc.get("degrees_of_freedom", 6)

@@ -43,10 +43,10 @@ __all__ = [
     "RegistrationSettings",
     "RegistrationViews",
     "StageResult",
+    "level_models",
     "register_multibody",
 ]
 
-BONES = ("sacrum", "left_hip", "right_hip")
 # Bone model sample spacing per unit of pyramid binning (mm): 3 mm at 4x, 1.5 mm at 2x. The
 # splatting cost grows as 1 / spacing; finer samples did not improve accuracy measurably.
 SAMPLE_MM_PER_FACTOR = 0.75
@@ -274,7 +274,11 @@ class MultiBodyResult:
         }
 
 
-def _level_models(ct_hu: Volume, labels: NDArray, factors: Sequence[int]) -> list[dict]:
+def level_models(ct_hu: Volume, labels: NDArray, factors: Sequence[int]) -> list[dict]:
+    """Bone models for each pyramid level (sample spacing ``SAMPLE_MM_PER_FACTOR`` x factor).
+
+    Build once per CT and pass to :func:`register_multibody` (``models=``) for every frame.
+    """
     return [bone_models(ct_hu, labels, sample_mm=SAMPLE_MM_PER_FACTOR * f) for f in factors]
 
 
@@ -335,7 +339,7 @@ def register_multibody(
     if cfg.dof == 9 and len(views.images) != 1:
         raise ValueError(f"9-DoF registration takes exactly one view, got {len(views.images)}")
     if models is None:
-        models = _level_models(ct_hu, lab, cfg.factors)
+        models = level_models(ct_hu, lab, cfg.factors)
     bones = list(models[0])
     init = {b: np.eye(4) for b in bones}
     for b, T in (init_poses or {}).items():

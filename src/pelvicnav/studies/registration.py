@@ -26,14 +26,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from pelvicnav import BONES
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.atlas import Atlas
 from pelvicnav.io.atomic import write_text
 
 __all__ = ["RegistrationStudySettings", "run_registration_study", "simulate_registration_case"]
-
-BONES = ("sacrum", "left_hip", "right_hip")
 
 
 @dataclass(frozen=True)
