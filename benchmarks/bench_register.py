@@ -23,7 +23,7 @@ def run() -> dict:
 
     from pelvicnav.drr.projector import downsample_projection
     from pelvicnav.drr.splat import splat
-    from pelvicnav.metrics.similarity import GradientOrientation
+    from pelvicnav.metrics.similarity import GradientNCC, GradientOrientation
     from pelvicnav.phantom.population import load_population
     from pelvicnav.register import multibody as mb
     from pelvicnav.studies.registration import RegistrationStudySettings, simulate_registration_case
@@ -62,19 +62,28 @@ def run() -> dict:
         go = GradientOrientation(drrs[0, 0])
         t = measure(lambda go=go, drrs=drrs: go(drrs[:, 0]), repeats=5)
         out[f"go_{f}x"] = t | {"images_per_s": B / t["median_s"]}
+        gncc = GradientNCC(drrs[0, 0])
+        t = measure(lambda g=gncc, drrs=drrs: g(drrs[:, 0]), repeats=5)
+        out[f"gncc_{f}x"] = t | {"images_per_s": B / t["median_s"]}
     times = []
     for r in range(3):
+        # the guidance workflow: the plan names the dislocated bone; bone models built per call
+        t0 = time.perf_counter()
+        models = mb.level_models(case["ct"], case["labels"], cfg.factors)
         res = mb.register_multibody(
-            case["ct"], case["labels"], views, seed=r, settings=cfg, models=models
-        )
-        times.append([s.seconds for s in res.stages] + [res.seconds])
+            case["ct"], case["labels"], views, seed=r, settings=cfg, models=models,
+            dislocated=case["bone"],
+        )  # fmt: skip
+        times.append([s.seconds for s in res.stages] + [res.seconds, time.perf_counter() - t0])
     times = np.asarray(times)
     out["registration"] = {
+        "plan": True,
         "stage1_median_s": float(np.median(times[:, 0])),
         "stage2_median_s": float(np.median(times[:, 1])),
         "total_median_s": float(np.median(times[:, 2])),
+        "with_bone_models_median_s": float(np.median(times[:, 3])),
         "target_s": 10.0,
-        "meets_target": bool(np.median(times[:, 2]) <= 10.0),
+        "meets_target": bool(np.median(times[:, 3]) <= 10.0),
         "evaluations": [s.evaluations for s in res.stages],
     }
     # subsequent frame: stage 2 at the fine level only, warm-started from the last result
@@ -82,6 +91,7 @@ def run() -> dict:
         max_generations_stage1=(0, 0),
         max_generations_stage2=(0, cfg.max_generations_stage2[-1]),
         stage2_sweeps=1,
+        stage2_restarts=0,  # tracking: no re-search of a bone already found
     )
     t = measure(
         lambda: mb.register_multibody(

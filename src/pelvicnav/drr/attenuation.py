@@ -56,12 +56,21 @@ def bone_models(
     lab = np.asarray(labels)
     if lab.shape != ct_hu.shape:
         raise ValueError(f"label map shape {lab.shape} differs from the CT's {ct_hu.shape}")
-    mu = mu_from_hu(ct_hu.data)
     factors = sample_factors(ct_hu.spacing, sample_mm)
     out = {}
     for bone, value in label_values.items():
         mask = lab == value
         if not mask.any():
             raise ValueError(f"the label map has no voxel of {bone} (label {value})")
-        out[bone] = point_model(Volume(np.where(mask, mu, 0.0), ct_hu.world_from_ijk), factors)
+        # work on the bone's bounding box only (a bone fills a few % of the CT)
+        box = []
+        for axis in range(3):
+            hit = np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis)))
+            box.append(slice(int(hit[0]), int(hit[-1]) + 1))
+        sub = tuple(box)
+        world_from_sub = ct_hu.world_from_ijk.copy()
+        world_from_sub[:3, 3] = ct_hu.world_from_ijk[:3, :3] @ [b.start for b in box]
+        world_from_sub[:3, 3] += ct_hu.world_from_ijk[:3, 3]
+        mu = np.where(mask[sub], mu_from_hu(ct_hu.data[sub]), np.float32(0.0))
+        out[bone] = point_model(Volume(mu, world_from_sub), factors)
     return out

@@ -266,32 +266,31 @@ def _compile_fast():  # pragma: no cover - compiled code
         return w / w.sum(), R
 
     @nb.njit(fastmath=True, cache=True)
-    def blur_rows(src, dst, radius):
-        """Horizontal tent blur; rows that are all zero stay zero (skipped)."""
+    def blur_rows(src, dst, radius, r_lo, r_hi, c_lo, c_hi):
+        """Horizontal tent blur of rows ``r_lo..r_hi`` of ``src``, whose non-zero entries lie in
+        columns ``c_lo..c_hi``; writes columns ``c_lo - R..c_hi + R`` of those rows."""
         w, R = tent(radius)
-        n0, n1 = src.shape
-        for a in range(n0):
+        n1 = src.shape[1]
+        for a in range(r_lo, r_hi + 1):
             row = src[a]
-            if row.max() == 0.0 and row.min() == 0.0:
-                dst[a, :] = 0.0
-                continue
-            for c in range(n1):
+            for c in range(max(c_lo - R, 0), min(c_hi + R, n1 - 1) + 1):
                 acc = 0.0
-                for j in range(max(-R, -c), min(R, n1 - 1 - c) + 1):
+                for j in range(max(-R, c_lo - c), min(R, c_hi - c) + 1):
                     acc += w[j + R] * row[c + j]
                 dst[a, c] = acc
 
     @nb.njit(fastmath=True, cache=True)
-    def blur_cols_out(src, out, radius, pad):
-        """Vertical tent blur written straight into the (unpadded) output image."""
+    def blur_cols_out(src, out, radius, pad, r_lo, r_hi, c_lo, c_hi):
+        """Vertical tent blur written straight into the (unpadded, zeroed) output image; ``src``
+        is valid in rows ``r_lo..r_hi`` and columns ``c_lo..c_hi`` (padded coordinates) and
+        zero elsewhere."""
         w, R = tent(radius)
-        n0 = src.shape[0]
         rows, cols = out.shape
-        for r in range(rows):
+        for r in range(max(r_lo - R - pad, 0), min(r_hi + R - pad, rows - 1) + 1):
             a = r + pad
-            for c in range(cols):
+            for c in range(max(c_lo - pad, 0), min(c_hi - pad, cols - 1) + 1):
                 acc = 0.0
-                for j in range(max(-R, -a), min(R, n0 - 1 - a) + 1):
+                for j in range(max(-R, r_lo - a), min(R, r_hi - a) + 1):
                     acc += w[j + R] * src[a + j, c + pad]
                 out[r, c] = acc
 
@@ -306,6 +305,7 @@ def _compile_fast():  # pragma: no cover - compiled code
             fx, fy, u0, v0 = intr[b, k, 0], intr[b, k, 1], intr[b, k, 2], intr[b, k, 3]
             # padded canvas: samples just outside the image still blur into it
             img = np.zeros((rows + 2 * pad, cols + 2 * pad))
+            r_lo, r_hi, c_lo, c_hi = rows + 2 * pad, -1, cols + 2 * pad, -1  # splatted box
             for l in range(L):
                 m = M[b, k, l]
                 for i in range(offsets[l], offsets[l + 1]):
@@ -330,8 +330,17 @@ def _compile_fast():  # pragma: no cover - compiled code
                     img[r0, c0 + 1] += value * a * (1.0 - bb)
                     img[r0 + 1, c0] += value * (1.0 - a) * bb
                     img[r0 + 1, c0 + 1] += value * a * bb
+                    r_lo = min(r_lo, r0)
+                    r_hi = max(r_hi, r0 + 1)
+                    c_lo = min(c_lo, c0)
+                    c_hi = max(c_hi, c0 + 1)
+            if r_hi < 0:
+                continue  # nothing in view: the image stays zero
+            # blur only the splatted box and its tent margin (a single bone fills a fraction)
             tmp = np.empty_like(img)
-            blur_rows(img, tmp, radius[b, k, 0])
-            blur_cols_out(tmp, out[b, k], radius[b, k, 1], pad)
+            blur_rows(img, tmp, radius[b, k, 0], r_lo, r_hi, c_lo, c_hi)
+            Rc = int(np.floor(radius[b, k, 0]))
+            blur_cols_out(tmp, out[b, k], radius[b, k, 1], pad, r_lo, r_hi,
+                          max(c_lo - Rc, 0), min(c_hi + Rc, cols + 2 * pad - 1))  # fmt: skip
 
     return kernel

@@ -87,6 +87,11 @@ class RegistrationSettings:
         the coarse level stood only ~10% above its background level (every strong-gradient pixel
         scores >= 0.29 whatever its orientation) and stage 1 locked onto magnified poses 30-50 mm
         off in depth in 3 of 20 cases; gradient NCC has a sharp capture peak.
+    stage2_restarts : int
+        Sweep mode: independent re-searches of the dislocated bone (every bone without a plan)
+        from its stage-1 pose with other seeds, after the sweeps. The better fine-level score
+        wins; two answers further apart than ``ambiguity`` (mm at the centroid, degrees) flag the
+        registration as not converged (the images leave the bone's pose ambiguous).
     stage2_populations : per level, optional
         Population of each 6-DoF block problem (default 30 and 20; None: ``populations``). The
         paper's 100 is for its 18-DoF joint problem; the block problems converge with fewer
@@ -115,6 +120,8 @@ class RegistrationSettings:
     stage2_sweeps: int = 2
     stage2_populations: tuple[int, ...] | None = (30, 20)
     metrics: tuple[str, ...] = ("gncc", "go")
+    stage2_restarts: int = 1
+    ambiguity: tuple[float, float] = (2.0, 2.0)
 
     def __post_init__(self) -> None:
         if self.dof not in (6, 9):
@@ -240,6 +247,7 @@ class MultiBodyResult:
     seconds: float = 0.0
     stage1_bone: str = ""
     warnings: tuple[str, ...] = ()
+    restart_disagreement: dict[str, float] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The ``result.json`` record of ARCHITECTURE.md."""
@@ -250,6 +258,7 @@ class MultiBodyResult:
             "converged": self.converged,
             "warnings": list(self.warnings),
             "stage1_bone": self.stage1_bone,
+            "restart_disagreement_mm": dict(self.restart_disagreement),
             "seconds": self.seconds,
             "stages": [
                 {
@@ -465,7 +474,41 @@ def register_multibody(
                 out[:, i] = pj.six_dof_pose(Y[:, 6 * i : 6 * i + 6], center=centres[i]) @ base[i]
             return out
 
+        def block_objective(i, y, lv):
+            """Bone ``i``'s 6-DoF objective at level ``lv`` over the others' fixed DRR at ``y``."""
+            Ps, gos, shape = levels[lv]
+            m = [models[lv][b] for b in bones]
+            others = [j for j in range(len(bones)) if j != i]
+            current = stage2_poses(y[None])
+            background = splat([m[j] for j in others], current[:, others], Ps, shape)
+
+            def objective_i(X):
+                T = pj.six_dof_pose(X, center=centres[i]) @ base[i]
+                return -score(gos, splat([m[i]], T[:, None], Ps, shape) + background)
+
+            return objective_i
+
+        def block_search(i, y, lv, x0, sweep, seed_i):
+            """One bone's 6 DoF at level ``lv`` over the fixed DRR of the others (at ``y``)."""
+            t_i, r_i = (
+                cfg.stage2_range_attached
+                if dislocated is not None and bones[i] != dislocated
+                else cfg.stage2_range
+            )
+            box = np.array([t_i] * 3 + [r_i] * 3)
+            return minimize_cmaes(
+                block_objective(i, y, lv),
+                x0,
+                sigma=cfg.sigmas[lv] / (1 + sweep),
+                population=cfg.stage2_populations[lv],
+                seed=seed_i,
+                max_generations=cfg.max_generations_stage2[lv],
+                bounds=(-box, box),
+            )
+
         stage2_levels = []
+        disagreement: dict[str, float] = {}
+        ambiguous: list[str] = []
         t_max, r_max = cfg.stage2_range
         for lv in range(len(cfg.factors)):
             if cfg.max_generations_stage2[lv] == 0:
@@ -495,36 +538,48 @@ def register_multibody(
                     order.sort(key=lambda j: bones[j] != dislocated)
                 for sweep in range(cfg.stage2_sweeps):
                     for i in order:
-                        t_i, r_i = (
-                            cfg.stage2_range_attached
-                            if dislocated is not None and bones[i] != dislocated
-                            else cfg.stage2_range
-                        )
-                        box = np.array([t_i] * 3 + [r_i] * 3)
-                        others = [j for j in range(len(bones)) if j != i]
-                        current = stage2_poses(y[None])
-                        background = splat([m[j] for j in others], current[:, others], Ps, shape)
-                        sl = slice(6 * i, 6 * i + 6)
-
-                        def objective_i(X, i=i, sl=sl, Ps=Ps, gos=gos, shape=shape, m=m,
-                                        background=background):  # fmt: skip
-                            T = pj.six_dof_pose(X, center=centres[i]) @ base[i]
-                            return -score(gos, splat([m[i]], T[:, None], Ps, shape) + background)
-
-                        res = minimize_cmaes(
-                            objective_i,
-                            y[sl],
-                            sigma=cfg.sigmas[lv] / (1 + sweep),
-                            population=cfg.stage2_populations[lv],
-                            seed=seed + 100 + 10 * lv + 3 * sweep + i,
-                            max_generations=cfg.max_generations_stage2[lv],
-                            bounds=(-box, box),
-                        )
+                        res = block_search(i, y, lv, y[6 * i : 6 * i + 6], sweep,
+                                           seed + 100 + 10 * lv + 3 * sweep + i)  # fmt: skip
                         stage2_levels.append(res)
                         y = y.copy()
-                        y[sl] = res.x
+                        y[6 * i : 6 * i + 6] = res.x
             if progress:
                 progress("stage 2", lv + 1, len(cfg.factors))
+        # independent re-searches: a second answer that disagrees means the images do not pin
+        # the bone down (a local optimum of one of the runs); keep the better fine score, flag it
+        searched = [lv for lv in range(len(cfg.factors)) if cfg.max_generations_stage2[lv] > 0]
+        fine = searched[-1] if searched else 0
+        check = [bones.index(dislocated)] if dislocated is not None else range(len(bones))
+        restarts = cfg.stage2_restarts if cfg.stage2_mode == "sweep" and searched else 0
+        for r in range(restarts):
+            for i in check:
+                sl = slice(6 * i, 6 * i + 6)
+                x_alt = np.zeros(6)  # the stage-1 pose
+                for lv in range(len(cfg.factors)):
+                    if cfg.max_generations_stage2[lv] > 0:
+                        y_alt = y.copy()
+                        y_alt[sl] = x_alt
+                        res = block_search(
+                            i, y_alt, lv, x_alt, 0, seed + 1000 * (r + 1) + 10 * lv + i
+                        )
+                        x_alt = res.x
+                f_now = float(block_objective(i, y, fine)(y[None, sl])[0])
+                T_now, T_alt = (
+                    pj.six_dof_pose(v[None], center=centres[i])[0] @ base[i] for v in (y[sl], x_alt)
+                )
+                c = centroids[bones[i]][None]
+                d_mm = float(np.linalg.norm(tf.apply(T_now, c) - tf.apply(T_alt, c)))
+                D = T_alt @ tf.invert(T_now)
+                d_deg = float(np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(D[:3, :3]))))
+                disagreement[bones[i]] = max(disagreement.get(bones[i], 0.0), d_mm)
+                if res.f < f_now:
+                    y = y.copy()
+                    y[sl] = x_alt
+                if d_mm > cfg.ambiguity[0] or d_deg > cfg.ambiguity[1]:
+                    ambiguous.append(
+                        f"two searches for {bones[i]} from the same start ended {d_mm:.1f} mm / "
+                        f"{d_deg:.1f} deg apart: the images do not pin its pose down"
+                    )
         final = stage2_poses(y[None])[0]
         poses = {b: final[i] for i, b in enumerate(bones)}
         n_final = 1 if cfg.stage2_mode == "joint" else len(bones)
@@ -539,6 +594,9 @@ def register_multibody(
     converged = all(s.converged for s in stages)
     if not converged:
         warnings.append("a CMA-ES level hit its generation limit while still improving")
+    if cfg.stage2 and ambiguous:
+        converged = False
+        warnings.extend(ambiguous)
     if similarity < cfg.min_similarity * len(views.images):
         converged = False
         warnings.append(f"final GO {similarity:.3f} is below {cfg.min_similarity} per view")
@@ -551,4 +609,5 @@ def register_multibody(
         seconds=time.perf_counter() - t_start,
         stage1_bone=first,
         warnings=tuple(warnings),
+        restart_disagreement=disagreement if cfg.stage2 else {},
     )

@@ -180,6 +180,8 @@ def run_registration_study(
                     "dislocation_mm": case["dislocation"][0],
                     "dislocation_deg": case["dislocation"][1],
                     "converged": res.converged,
+                    "restart_disagreement_mm": res.restart_disagreement.get(r["bone"], ""),
+                    "warnings": "; ".join(res.warnings),
                     "similarity": res.similarity,
                     "seconds": res.seconds,
                     "stage1_s": res.stages[0].seconds,
