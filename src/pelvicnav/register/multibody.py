@@ -90,8 +90,10 @@ class RegistrationSettings:
     stage2_restarts : int
         Sweep mode: independent re-searches of the dislocated bone (every bone without a plan)
         from its stage-1 pose with other seeds, after the sweeps. The better fine-level score
-        wins; two answers further apart than ``ambiguity`` (mm at the centroid, degrees) flag the
-        registration as not converged (the images leave the bone's pose ambiguous).
+        wins; two answers further apart than ``ambiguity`` (mm at the centroid, degrees) whose
+        summed similarities differ by less than ``ambiguity_score`` flag the registration as not
+        converged (the images leave the bone's pose ambiguous). A re-search that ends at a
+        clearly worse similarity is a failed restart, not an ambiguity.
     stage2_populations : per level, optional
         Population of each 6-DoF block problem (default 30 and 20; None: ``populations``). The
         paper's 100 is for its 18-DoF joint problem; the block problems converge with fewer
@@ -122,6 +124,7 @@ class RegistrationSettings:
     metrics: tuple[str, ...] = ("gncc", "go")
     stage2_restarts: int = 1
     ambiguity: tuple[float, float] = (2.0, 2.0)
+    ambiguity_score: float = 0.01
 
     def __post_init__(self) -> None:
         if self.dof not in (6, 9):
@@ -575,10 +578,12 @@ def register_multibody(
                 if res.f < f_now:
                     y = y.copy()
                     y[sl] = x_alt
-                if d_mm > cfg.ambiguity[0] or d_deg > cfg.ambiguity[1]:
+                apart = d_mm > cfg.ambiguity[0] or d_deg > cfg.ambiguity[1]
+                if apart and abs(res.f - f_now) < cfg.ambiguity_score:  # both answers fit
                     ambiguous.append(
                         f"two searches for {bones[i]} from the same start ended {d_mm:.1f} mm / "
-                        f"{d_deg:.1f} deg apart: the images do not pin its pose down"
+                        f"{d_deg:.1f} deg apart with similarities within {cfg.ambiguity_score}: "
+                        "the images do not pin its pose down"
                     )
         final = stage2_poses(y[None])[0]
         poses = {b: final[i] for i, b in enumerate(bones)}
