@@ -209,6 +209,7 @@ class StageResult:
     levels: list[CMAESResult]
     seconds: float
     n_final: int = 1
+    restarts: list[CMAESResult] = field(default_factory=list)  # re-searches (not the estimate)
 
     @property
     def converged(self) -> bool:
@@ -221,7 +222,7 @@ class StageResult:
 
     @property
     def evaluations(self) -> int:
-        return sum(r.evaluations for r in self.levels)
+        return sum(r.evaluations for r in (*self.levels, *self.restarts))
 
 
 @dataclass(frozen=True)
@@ -511,6 +512,7 @@ def register_multibody(
 
         stage2_levels = []
         disagreement: dict[str, float] = {}
+        restart_runs: list[CMAESResult] = []
         ambiguous: list[str] = []
         t_max, r_max = cfg.stage2_range
         for lv in range(len(cfg.factors)):
@@ -565,6 +567,7 @@ def register_multibody(
                         res = block_search(
                             i, y_alt, lv, x_alt, 0, seed + 1000 * (r + 1) + 10 * lv + i
                         )
+                        restart_runs.append(res)
                         x_alt = res.x
                 f_now = float(block_objective(i, y, fine)(y[None, sl])[0])
                 T_now, T_alt = (
@@ -589,7 +592,7 @@ def register_multibody(
         poses = {b: final[i] for i, b in enumerate(bones)}
         n_final = 1 if cfg.stage2_mode == "joint" else len(bones)
         stages.append(
-            StageResult("stage 2", stage2_levels, time.perf_counter() - t0, n_final=n_final)
+            StageResult("stage 2", stage2_levels, time.perf_counter() - t0, n_final, restart_runs)
         )
     # final similarity: all bones at the finest level
     Ps, gos, shape = levels[-1]
