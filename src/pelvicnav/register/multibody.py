@@ -241,6 +241,11 @@ class MultiBodyResult:
     stages : list of StageResult
     seconds : float
     stage1_bone : str
+    warnings : tuple of str
+    restart_disagreement : dict bone -> mm
+        Distance between the stage-2 answer and the independent re-search (``stage2_restarts``):
+        at the bone's centroid, or with one view the median distance of its projected samples
+        at the detector.
     """
 
     poses: dict[str, NDArray[np.float64]]
@@ -573,10 +578,20 @@ def register_multibody(
                 T_now, T_alt = (
                     pj.six_dof_pose(v[None], center=centres[i])[0] @ base[i] for v in (y[sl], x_alt)
                 )
-                c = centroids[bones[i]][None]
-                d_mm = float(np.linalg.norm(tf.apply(T_now, c) - tf.apply(T_alt, c)))
-                D = T_alt @ tf.invert(T_now)
-                d_deg = float(np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(D[:3, :3]))))
+                if len(views.images) == 1:
+                    # one view does not fix depth: compare where the bone projects (median
+                    # distance of its samples at the detector, mm); rotations show in that too
+                    pts = models[fine][bones[i]].points[::7]
+                    P = Ps_final[0]
+                    duv = pj.project(P, tf.apply(T_now, pts)) - pj.project(P, tf.apply(T_alt, pts))
+                    dr, dc = views.pixel_spacing[0]
+                    d_mm = float(np.median(np.linalg.norm(duv * [dc, dr], axis=1)))
+                    d_deg = 0.0
+                else:
+                    c = centroids[bones[i]][None]
+                    d_mm = float(np.linalg.norm(tf.apply(T_now, c) - tf.apply(T_alt, c)))
+                    D = T_alt @ tf.invert(T_now)
+                    d_deg = float(np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(D[:3, :3]))))
                 disagreement[bones[i]] = max(disagreement.get(bones[i], 0.0), d_mm)
                 if res.f < f_now:
                     y = y.copy()
