@@ -117,6 +117,19 @@ def gradient_ncc(fixed: ArrayLike, moving: ArrayLike) -> NDArray[np.float64]:
     return 0.5 * (ncc(fx, mx) + ncc(fy, my))
 
 
+def _moving_batch(moving: ArrayLike, shape: tuple[int, int]) -> tuple[NDArray[np.float32], tuple]:
+    """``(..., H, W)`` images as a contiguous float32 ``(n, H, W)`` batch, and the leading shape."""
+    m = np.asarray(moving)
+    if m.ndim < 2 or m.shape[-2:] != shape:
+        raise ValueError(
+            f"moving images must have shape (..., {shape[0]}, {shape[1]}), got {m.shape}"
+        )
+    flat = np.ascontiguousarray(m.reshape(-1, *shape), dtype=np.float32)
+    if not np.all(np.isfinite(flat)):
+        raise ValueError("images contain NaN or infinity")
+    return flat, m.shape[:-2]
+
+
 class GradientOrientation:
     """GO against one fixed image, fast for many moving images (numba, parallel over images).
 
@@ -142,16 +155,7 @@ class GradientOrientation:
 
     def __call__(self, moving: ArrayLike) -> NDArray[np.float64]:
         """GO of each image in ``moving`` ``(..., H, W)``; returns ``(...)``."""
-        m = np.asarray(moving)
-        if m.ndim < 2 or m.shape[-2:] != self.shape:
-            raise ValueError(
-                f"moving images must have shape (..., {self.shape[0]}, {self.shape[1]}), "
-                f"got {m.shape}"
-            )
-        lead = m.shape[:-2]
-        flat = np.ascontiguousarray(m.reshape(-1, *self.shape), dtype=np.float32)
-        if not np.all(np.isfinite(flat)):
-            raise ValueError("images contain NaN or infinity")
+        flat, lead = _moving_batch(moving, self.shape)
         out = np.empty(len(flat))
         _compile_go()(self._fx, self._fy, self._fmag, self._mask, flat, _LUT, out)
         return out.reshape(lead)
@@ -240,21 +244,14 @@ class GradientNCC:
 
     def __call__(self, moving: ArrayLike) -> NDArray[np.float64]:
         """Gradient NCC of each image in ``moving`` ``(..., H, W)``; returns ``(...)``."""
-        m = np.asarray(moving)
-        if m.ndim < 2 or m.shape[-2:] != self.shape:
-            raise ValueError(
-                f"moving images must have shape (..., {self.shape[0]}, {self.shape[1]}), "
-                f"got {m.shape}"
-            )
-        lead = m.shape[:-2]
-        flat = np.ascontiguousarray(m.reshape(-1, *self.shape), dtype=np.float32)
-        if not np.all(np.isfinite(flat)):
-            raise ValueError("images contain NaN or infinity")
+        flat, lead = _moving_batch(moving, self.shape)
         out = np.empty(len(flat))
         _compile_gncc()(self._fx, self._fy, flat, out)
         return out.reshape(lead)
 
 
+# The Sobel stencil is written out in both kernels on purpose: a shared jitted helper captured
+# from a closure stops numba caching the kernels (GO then recompiles for 10 s in every process).
 @functools.cache  # compile once per process, on first use
 def _compile_gncc():  # pragma: no cover - compiled code
     import numba as nb

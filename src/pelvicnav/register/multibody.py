@@ -313,6 +313,29 @@ def _blurred(image: NDArray, factor: int, models: dict[str, PointModel], P: NDAr
     return gaussian_filter(img, sigma, mode="nearest")
 
 
+def _pose_disagreement(
+    T_a: NDArray, T_b: NDArray, model: PointModel, projections: Sequence[NDArray], spacing
+) -> tuple[float, float]:
+    """How far apart two poses of one bone are: (mm at its centroid, degrees).
+
+    With one view, depth is not fixed by the image, so the distance is where the bone projects
+    instead: the median distance of its samples at the detector (mm; rotations show in it too)
+    and 0 degrees.
+    """
+    if len(projections) == 1:
+        pts = model.points[::7]
+        P = projections[0]
+        duv = pj.project(P, tf.apply(T_a, pts)) - pj.project(P, tf.apply(T_b, pts))
+        dr, dc = spacing[0]
+        return float(np.median(np.linalg.norm(duv * [dc, dr], axis=1))), 0.0
+    c = model.centroid[None]
+    D = T_b @ tf.invert(T_a)
+    return (
+        float(np.linalg.norm(tf.apply(T_a, c) - tf.apply(T_b, c))),
+        float(np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(D[:3, :3])))),
+    )
+
+
 def register_multibody(
     ct_hu: Volume,
     labels: ArrayLike,
@@ -523,9 +546,9 @@ def register_multibody(
         for lv in range(len(cfg.factors)):
             if cfg.max_generations_stage2[lv] == 0:
                 continue
-            Ps, gos, shape = levels[lv]
-            m = [models[lv][b] for b in bones]
             if cfg.stage2_mode == "joint":
+                Ps, gos, shape = levels[lv]
+                m = [models[lv][b] for b in bones]
 
                 def objective2(Y, Ps=Ps, gos=gos, shape=shape, m=m):
                     return -score(gos, splat(m, stage2_poses(Y), Ps, shape))
@@ -565,33 +588,19 @@ def register_multibody(
             for i in check:
                 sl = slice(6 * i, 6 * i + 6)
                 x_alt = np.zeros(6)  # the stage-1 pose
-                for lv in range(len(cfg.factors)):
-                    if cfg.max_generations_stage2[lv] > 0:
-                        y_alt = y.copy()
-                        y_alt[sl] = x_alt
-                        res = block_search(
-                            i, y_alt, lv, x_alt, 0, seed + 1000 * (r + 1) + 10 * lv + i
-                        )
-                        restart_runs.append(res)
-                        x_alt = res.x
+                for lv in searched:
+                    y_alt = y.copy()
+                    y_alt[sl] = x_alt
+                    res = block_search(i, y_alt, lv, x_alt, 0, seed + 1000 * (r + 1) + 10 * lv + i)
+                    restart_runs.append(res)
+                    x_alt = res.x
                 f_now = float(block_objective(i, y, fine)(y[None, sl])[0])
                 T_now, T_alt = (
                     pj.six_dof_pose(v[None], center=centres[i])[0] @ base[i] for v in (y[sl], x_alt)
                 )
-                if len(views.images) == 1:
-                    # one view does not fix depth: compare where the bone projects (median
-                    # distance of its samples at the detector, mm); rotations show in that too
-                    pts = models[fine][bones[i]].points[::7]
-                    P = Ps_final[0]
-                    duv = pj.project(P, tf.apply(T_now, pts)) - pj.project(P, tf.apply(T_alt, pts))
-                    dr, dc = views.pixel_spacing[0]
-                    d_mm = float(np.median(np.linalg.norm(duv * [dc, dr], axis=1)))
-                    d_deg = 0.0
-                else:
-                    c = centroids[bones[i]][None]
-                    d_mm = float(np.linalg.norm(tf.apply(T_now, c) - tf.apply(T_alt, c)))
-                    D = T_alt @ tf.invert(T_now)
-                    d_deg = float(np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(D[:3, :3]))))
+                d_mm, d_deg = _pose_disagreement(
+                    T_now, T_alt, models[fine][bones[i]], Ps_final, views.pixel_spacing
+                )
                 disagreement[bones[i]] = max(disagreement.get(bones[i], 0.0), d_mm)
                 if res.f < f_now:
                     y = y.copy()
