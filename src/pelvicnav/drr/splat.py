@@ -257,43 +257,6 @@ def _compile():  # pragma: no cover - compiled code
 def _compile_fast():  # pragma: no cover - compiled code
     import numba as nb
 
-    @nb.njit(fastmath=True, cache=True)
-    def tent(radius):
-        R = int(np.floor(radius))
-        w = np.empty(2 * R + 1)
-        for j in range(-R, R + 1):
-            w[j + R] = max(0.0, 1.0 - abs(j) / radius) if radius > 0 else (1.0 if j == 0 else 0.0)
-        return w / w.sum(), R
-
-    @nb.njit(fastmath=True, cache=True)
-    def blur_rows(src, dst, radius, r_lo, r_hi, c_lo, c_hi):
-        """Horizontal tent blur of rows ``r_lo..r_hi`` of ``src``, whose non-zero entries lie in
-        columns ``c_lo..c_hi``; writes columns ``c_lo - R..c_hi + R`` of those rows."""
-        w, R = tent(radius)
-        n1 = src.shape[1]
-        for a in range(r_lo, r_hi + 1):
-            row = src[a]
-            for c in range(max(c_lo - R, 0), min(c_hi + R, n1 - 1) + 1):
-                acc = 0.0
-                for j in range(max(-R, c_lo - c), min(R, c_hi - c) + 1):
-                    acc += w[j + R] * row[c + j]
-                dst[a, c] = acc
-
-    @nb.njit(fastmath=True, cache=True)
-    def blur_cols_out(src, out, radius, pad, r_lo, r_hi, c_lo, c_hi):
-        """Vertical tent blur written straight into the (unpadded, zeroed) output image; ``src``
-        is valid in rows ``r_lo..r_hi`` and columns ``c_lo..c_hi`` (padded coordinates) and
-        zero elsewhere."""
-        w, R = tent(radius)
-        rows, cols = out.shape
-        for r in range(max(r_lo - R - pad, 0), min(r_hi + R - pad, rows - 1) + 1):
-            a = r + pad
-            for c in range(max(c_lo - pad, 0), min(c_hi - pad, cols - 1) + 1):
-                acc = 0.0
-                for j in range(max(-R, r_lo - a), min(R, r_hi - a) + 1):
-                    acc += w[j + R] * src[a + j, c + pad]
-                out[r, c] = acc
-
     @nb.njit(parallel=True, fastmath=True, cache=True)
     def kernel(M, pts, mass, offsets, intr, radius, pad, out):
         B, K = M.shape[0], M.shape[1]
@@ -336,11 +299,38 @@ def _compile_fast():  # pragma: no cover - compiled code
                     c_hi = max(c_hi, c0 + 1)
             if r_hi < 0:
                 continue  # nothing in view: the image stays zero
-            # blur only the splatted box and its tent margin (a single bone fills a fraction)
+            # separable tent blur of the splatted box and its margin only (a single bone fills a
+            # fraction of the image). Written out here rather than in helper functions: numba
+            # does not cache kernels that call jitted closures (3 s of compiling per process).
+            ru = radius[b, k, 0]
+            Ru = int(np.floor(ru))
+            wu = np.empty(2 * Ru + 1)
+            for j in range(-Ru, Ru + 1):
+                wu[j + Ru] = max(0.0, 1.0 - abs(j) / ru) if ru > 0 else (1.0 if j == 0 else 0.0)
+            wu = wu / wu.sum()
+            rv = radius[b, k, 1]
+            Rv = int(np.floor(rv))
+            wv = np.empty(2 * Rv + 1)
+            for j in range(-Rv, Rv + 1):
+                wv[j + Rv] = max(0.0, 1.0 - abs(j) / rv) if rv > 0 else (1.0 if j == 0 else 0.0)
+            wv = wv / wv.sum()
+            n1 = img.shape[1]
+            cl = max(c_lo - Ru, 0)  # columns the horizontal pass writes
+            ch = min(c_hi + Ru, n1 - 1)
             tmp = np.empty_like(img)
-            blur_rows(img, tmp, radius[b, k, 0], r_lo, r_hi, c_lo, c_hi)
-            Rc = int(np.floor(radius[b, k, 0]))
-            blur_cols_out(tmp, out[b, k], radius[b, k, 1], pad, r_lo, r_hi,
-                          max(c_lo - Rc, 0), min(c_hi + Rc, cols + 2 * pad - 1))  # fmt: skip
+            for a in range(r_lo, r_hi + 1):
+                for c in range(cl, ch + 1):
+                    acc = 0.0
+                    for j in range(max(-Ru, c_lo - c), min(Ru, c_hi - c) + 1):
+                        acc += wu[j + Ru] * img[a, c + j]
+                    tmp[a, c] = acc
+            o = out[b, k]
+            for r in range(max(r_lo - Rv - pad, 0), min(r_hi + Rv - pad, rows - 1) + 1):
+                a = r + pad
+                for c in range(max(cl - pad, 0), min(ch - pad, cols - 1) + 1):
+                    acc = 0.0
+                    for j in range(max(-Rv, r_lo - a), min(Rv, r_hi - a) + 1):
+                        acc += wv[j + Rv] * tmp[a + j, c + pad]
+                    o[r, c] = acc
 
     return kernel
