@@ -104,6 +104,16 @@ class RegistrationSettings:
     stage2_range_attached : (mm, deg)
         Stage-2 box of the bones the plan says are not dislocated (they moved with the pelvis in
         stage 1, up to the few mm the dislocated bone biased it), when ``dislocated`` is given.
+    coarse_rotation_prior : float
+        Stage 2, every level but the finest, the dislocated bone (every bone without a plan; the
+        others are held by ``stage2_range_attached``): ``coarse_rotation_prior x K x |r|^2`` is
+        taken off the similarity of the bone rotated by ``|r|`` degrees from its stage-1 pose
+        (K views). A
+        bone that is half out of the field of view leaves the coarse levels a valley of near
+        equal similarity along which it can turn 10-15 degrees; the prior (0.001 per view at 4.5
+        deg, 0.01 at 14 deg) picks the least-turned end of it. The finest level is not
+        regularised, so the estimate carries no bias from it; a coarse answer off by a few
+        degrees is within the fine level's capture range. 0 switches it off (the paper).
     """
 
     dof: int = 6
@@ -125,6 +135,7 @@ class RegistrationSettings:
     stage2_restarts: int = 1
     ambiguity: tuple[float, float] = (2.0, 2.0)
     ambiguity_score: float = 0.01
+    coarse_rotation_prior: float = 5e-5
 
     def __post_init__(self) -> None:
         if self.dof not in (6, 9):
@@ -142,6 +153,10 @@ class RegistrationSettings:
             raise ValueError(f"metrics must be 'go' or 'gncc', got {self.metrics}")
         if any(len(x) != n for x in (*lists, self.stage2_populations, self.metrics)):
             raise ValueError("registration settings need one value per pyramid level")
+        if not self.coarse_rotation_prior >= 0:
+            raise ValueError(
+                f"coarse_rotation_prior must be >= 0, got {self.coarse_rotation_prior}"
+            )
         if self.stage2_mode not in ("joint", "sweep"):
             raise ValueError(f"stage2_mode must be 'joint' or 'sweep', got {self.stage2_mode!r}")
 
@@ -506,6 +521,20 @@ def register_multibody(
                 out[:, i] = pj.six_dof_pose(Y[:, 6 * i : 6 * i + 6], center=centres[i]) @ base[i]
             return out
 
+        searched = [lv for lv in range(len(cfg.factors)) if cfg.max_generations_stage2[lv] > 0]
+        fine = searched[-1] if searched else 0
+        n_views = len(views.images)
+
+        def free(i: int) -> bool:
+            """Bone ``i`` gets the full stage-2 range (not held near the body by the plan)."""
+            return dislocated is None or bones[i] == dislocated
+
+        def prior(R: NDArray, lv: int) -> NDArray:
+            """Coarse-level rotation prior: (N,) for (N, n) rotation parameters (degrees)."""
+            if lv == fine or cfg.coarse_rotation_prior == 0:
+                return np.zeros(len(R))
+            return cfg.coarse_rotation_prior * n_views * np.sum(R * R, axis=1)
+
         def block_objective(i, y, lv):
             """Bone ``i``'s 6-DoF objective at level ``lv`` over the others' fixed DRR at ``y``."""
             Ps, gos, shape = levels[lv]
@@ -516,17 +545,14 @@ def register_multibody(
 
             def objective_i(X):
                 T = pj.six_dof_pose(X, center=centres[i]) @ base[i]
-                return -score(gos, splat([m[i]], T[:, None], Ps, shape) + background)
+                drrs = splat([m[i]], T[:, None], Ps, shape) + background
+                return (prior(X[:, 3:], lv) if free(i) else 0.0) - score(gos, drrs)
 
             return objective_i
 
         def block_search(i, y, lv, x0, sweep, seed_i):
             """One bone's 6 DoF at level ``lv`` over the fixed DRR of the others (at ``y``)."""
-            t_i, r_i = (
-                cfg.stage2_range_attached
-                if dislocated is not None and bones[i] != dislocated
-                else cfg.stage2_range
-            )
+            t_i, r_i = cfg.stage2_range if free(i) else cfg.stage2_range_attached
             box = np.array([t_i] * 3 + [r_i] * 3)
             return minimize_cmaes(
                 block_objective(i, y, lv),
@@ -550,8 +576,10 @@ def register_multibody(
                 Ps, gos, shape = levels[lv]
                 m = [models[lv][b] for b in bones]
 
-                def objective2(Y, Ps=Ps, gos=gos, shape=shape, m=m):
-                    return -score(gos, splat(m, stage2_poses(Y), Ps, shape))
+                def objective2(Y, Ps=Ps, gos=gos, shape=shape, m=m, lv=lv):
+                    R = Y.reshape(len(Y), len(bones), 6)[:, [free(i) for i in range(len(bones))], 3:]
+                    R = R.reshape(len(Y), -1)
+                    return prior(R, lv) - score(gos, splat(m, stage2_poses(Y), Ps, shape))
 
                 box2 = np.tile([t_max] * 3 + [r_max] * 3, len(bones))
                 res = minimize_cmaes(
@@ -580,8 +608,6 @@ def register_multibody(
                 progress("stage 2", lv + 1, len(cfg.factors))
         # independent re-searches: a second answer that disagrees means the images do not pin
         # the bone down (a local optimum of one of the runs); keep the better fine score, flag it
-        searched = [lv for lv in range(len(cfg.factors)) if cfg.max_generations_stage2[lv] > 0]
-        fine = searched[-1] if searched else 0
         check = [bones.index(dislocated)] if dislocated is not None else range(len(bones))
         restarts = cfg.stage2_restarts if cfg.stage2_mode == "sweep" and searched else 0
         for r in range(restarts):
