@@ -105,15 +105,16 @@ class RegistrationSettings:
         Stage-2 box of the bones the plan says are not dislocated (they moved with the pelvis in
         stage 1, up to the few mm the dislocated bone biased it), when ``dislocated`` is given.
     coarse_rotation_prior : float
-        Stage 2, every level but the finest, the dislocated bone (every bone without a plan; the
-        others are held by ``stage2_range_attached``): ``coarse_rotation_prior x K x |r|^2`` is
-        taken off the similarity of the bone rotated by ``|r|`` degrees from its stage-1 pose
-        (K views). A
-        bone that is half out of the field of view leaves the coarse levels a valley of near
-        equal similarity along which it can turn 10-15 degrees; the prior (0.001 per view at 4.5
-        deg, 0.01 at 14 deg) picks the least-turned end of it. The finest level is not
-        regularised, so the estimate carries no bias from it; a coarse answer off by a few
-        degrees is within the fine level's capture range. 0 switches it off (the paper).
+        The re-search (``stage2_restarts``) is regularised at every level but the finest:
+        ``coarse_rotation_prior x K x |r|^2`` is taken off the similarity of the bone rotated by
+        ``|r|`` degrees from its stage-1 pose (K views). A bone about half out of the field of
+        view leaves the coarse levels a valley of nearly equal similarity along which it can turn
+        10-15 degrees; the prior (0.001 per view at 4.5 deg, 0.01 at 14 deg) takes the
+        least-turned end of it, so the re-search is a second hypothesis rather than a repeat.
+        The finest level is not regularised and picks between the answers; when the re-search
+        wins from another basin, every bone gets one more fine-level pass over the corrected
+        DRRs. The sweeps themselves are not regularised: a prior there shifted the sacrum's
+        poorly determined depth by ~0.2 mm through the DRR it overlaps. 0 switches it off.
     """
 
     dof: int = 6
@@ -529,14 +530,10 @@ def register_multibody(
             """Bone ``i`` gets the full stage-2 range (not held near the body by the plan)."""
             return dislocated is None or bones[i] == dislocated
 
-        def prior(R: NDArray, lv: int) -> NDArray:
-            """Coarse-level rotation prior: (N,) for (N, n) rotation parameters (degrees)."""
-            if lv == fine or cfg.coarse_rotation_prior == 0:
-                return np.zeros(len(R))
-            return cfg.coarse_rotation_prior * n_views * np.sum(R * R, axis=1)
-
-        def block_objective(i, y, lv):
-            """Bone ``i``'s 6-DoF objective at level ``lv`` over the others' fixed DRR at ``y``."""
+        def block_objective(i, y, lv, regularised=False):
+            """Bone ``i``'s 6-DoF objective at level ``lv`` over the others' fixed DRR at ``y``
+            (``regularised``: with the coarse-level rotation prior)."""
+            weight = cfg.coarse_rotation_prior * n_views if regularised and lv != fine else 0.0
             Ps, gos, shape = levels[lv]
             m = [models[lv][b] for b in bones]
             others = [j for j in range(len(bones)) if j != i]
@@ -546,16 +543,16 @@ def register_multibody(
             def objective_i(X):
                 T = pj.six_dof_pose(X, center=centres[i]) @ base[i]
                 drrs = splat([m[i]], T[:, None], Ps, shape) + background
-                return (prior(X[:, 3:], lv) if free(i) else 0.0) - score(gos, drrs)
+                return weight * np.sum(X[:, 3:] ** 2, axis=1) - score(gos, drrs)
 
             return objective_i
 
-        def block_search(i, y, lv, x0, sweep, seed_i):
+        def block_search(i, y, lv, x0, sweep, seed_i, regularised=False):
             """One bone's 6 DoF at level ``lv`` over the fixed DRR of the others (at ``y``)."""
             t_i, r_i = cfg.stage2_range if free(i) else cfg.stage2_range_attached
             box = np.array([t_i] * 3 + [r_i] * 3)
             return minimize_cmaes(
-                block_objective(i, y, lv),
+                block_objective(i, y, lv, regularised),
                 x0,
                 sigma=cfg.sigmas[lv] / (1 + sweep),
                 population=cfg.stage2_populations[lv],
@@ -564,6 +561,9 @@ def register_multibody(
                 bounds=(-box, box),
             )
 
+        order = list(range(len(bones)))  # sweep order: the dislocated bone first
+        if dislocated is not None:
+            order.sort(key=lambda j: bones[j] != dislocated)
         stage2_levels = []
         disagreement: dict[str, float] = {}
         restart_runs: list[CMAESResult] = []
@@ -576,10 +576,8 @@ def register_multibody(
                 Ps, gos, shape = levels[lv]
                 m = [models[lv][b] for b in bones]
 
-                def objective2(Y, Ps=Ps, gos=gos, shape=shape, m=m, lv=lv):
-                    R = Y.reshape(len(Y), len(bones), 6)[:, [free(i) for i in range(len(bones))], 3:]
-                    R = R.reshape(len(Y), -1)
-                    return prior(R, lv) - score(gos, splat(m, stage2_poses(Y), Ps, shape))
+                def objective2(Y, Ps=Ps, gos=gos, shape=shape, m=m):
+                    return -score(gos, splat(m, stage2_poses(Y), Ps, shape))
 
                 box2 = np.tile([t_max] * 3 + [r_max] * 3, len(bones))
                 res = minimize_cmaes(
@@ -594,9 +592,6 @@ def register_multibody(
                 stage2_levels.append(res)
                 y = res.x
             else:  # block coordinates: one bone at a time over the others' fixed DRR
-                order = list(range(len(bones)))
-                if dislocated is not None:
-                    order.sort(key=lambda j: bones[j] != dislocated)
                 for sweep in range(cfg.stage2_sweeps):
                     for i in order:
                         res = block_search(i, y, lv, y[6 * i : 6 * i + 6], sweep,
@@ -617,7 +612,8 @@ def register_multibody(
                 for lv in searched:
                     y_alt = y.copy()
                     y_alt[sl] = x_alt
-                    res = block_search(i, y_alt, lv, x_alt, 0, seed + 1000 * (r + 1) + 10 * lv + i)
+                    res = block_search(i, y_alt, lv, x_alt, 0, seed + 1000 * (r + 1) + 10 * lv + i,
+                                       regularised=True)  # fmt: skip
                     restart_runs.append(res)
                     x_alt = res.x
                 f_now = float(block_objective(i, y, fine)(y[None, sl])[0])
@@ -628,10 +624,17 @@ def register_multibody(
                     T_now, T_alt, models[fine][bones[i]], Ps_final, views.pixel_spacing
                 )
                 disagreement[bones[i]] = max(disagreement.get(bones[i], 0.0), d_mm)
+                apart = d_mm > cfg.ambiguity[0] or d_deg > cfg.ambiguity[1]
                 if res.f < f_now:
                     y = y.copy()
                     y[sl] = x_alt
-                apart = d_mm > cfg.ambiguity[0] or d_deg > cfg.ambiguity[1]
+                    if apart:  # another basin: the other bones were fitted over a wrong DRR
+                        for j in order:
+                            rj = block_search(j, y, fine, y[6 * j : 6 * j + 6], 1,
+                                              seed + 2000 * (r + 1) + j)  # fmt: skip
+                            restart_runs.append(rj)
+                            y = y.copy()
+                            y[6 * j : 6 * j + 6] = rj.x
                 if apart and abs(res.f - f_now) < cfg.ambiguity_score:  # both answers fit
                     ambiguous.append(
                         f"two searches for {bones[i]} from the same start ended {d_mm:.1f} mm / "
