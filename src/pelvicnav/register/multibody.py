@@ -89,7 +89,8 @@ class RegistrationSettings:
         off in depth in 3 of 20 cases; gradient NCC has a sharp capture peak.
     stage2_restarts : int
         Sweep mode: independent re-searches of the dislocated bone (every bone without a plan)
-        from its stage-1 pose with other seeds, after the sweeps. The better fine-level score
+        from its stage-1 pose with other seeds and the ``coarse_rotation_prior``, after the
+        sweeps. The better fine-level score
         wins; two answers further apart than ``ambiguity`` (mm at the centroid, degrees) whose
         summed similarities differ by less than ``ambiguity_score`` flag the registration as not
         converged (the images leave the bone's pose ambiguous). A re-search that ends at a
