@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from pelvicnav.drr.projector import render
+from pelvicnav.drr.projector import downsample_image, render
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.register.rigid import PyramidSettings, downsample_image, register_rigid
+from pelvicnav.register.rigid import PyramidSettings, register_rigid
 
 
 @pytest.fixture(scope="module")

@@ -29,14 +29,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pelvicnav.drr.attenuation import bone_models
-from pelvicnav.drr.projector import downsample_projection
+from pelvicnav.drr.projector import downsample_image, downsample_projection
 from pelvicnav.drr.splat import PointModel, splat
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.metrics.similarity import GradientNCC, GradientOrientation
 from pelvicnav.register.cmaes import CMAESResult, minimize_cmaes
-from pelvicnav.register.rigid import downsample_image
 
 __all__ = [
     "MultiBodyResult",

@@ -5,6 +5,10 @@ one bone is found by maximising the gradient-orientation similarity (summed over
 12 with one body) between the radiographs and DRRs, with CMA-ES on a [4x, 2x] pyramid (population
 [100, 100], sigma [4, 1] mm and degrees). Parameters are ``[t (mm), r (deg)]`` about the body's
 centre (:func:`pelvicnav.geometry.projection.six_dof_pose`), applied on top of the initial pose.
+
+DRRs come from the ray-casting reference projector, so this is the exact (and slow) single-body
+registration of arbitrary attenuation volumes. The workflow's fast multi-body path (splatted
+bone models) is :func:`~pelvicnav.register.multibody.register_multibody`.
 """
 
 from __future__ import annotations
@@ -16,14 +20,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from pelvicnav.drr.projector import downsample_projection, render
+from pelvicnav.drr.projector import downsample_image, downsample_projection, render
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.metrics.similarity import gradient_orientation
 from pelvicnav.register.cmaes import CMAESResult, minimize_cmaes
 
-__all__ = ["PyramidSettings", "RigidResult", "downsample_image", "register_rigid"]
+__all__ = ["PyramidSettings", "RigidResult", "register_rigid"]
 
 
 @dataclass(frozen=True)
@@ -67,16 +71,6 @@ class RigidResult:
     converged: bool
     levels: list[CMAESResult] = field(default_factory=list)
     seconds: float = 0.0
-
-
-def downsample_image(image: ArrayLike, factor: int) -> NDArray[np.float64]:
-    """Block-average an image by an integer factor (trailing rows/columns that do not fill a block
-    are dropped), matching :func:`pelvicnav.drr.projector.downsample_projection`."""
-    img = np.asarray(image, dtype=np.float64)
-    if factor == 1:
-        return img
-    h, w = (img.shape[0] // factor) * factor, (img.shape[1] // factor) * factor
-    return img[:h, :w].reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
 
 
 def register_rigid(
