@@ -187,3 +187,5 @@ def test_bad_input(phantom):
         register_multibody(ct, labels, views, settings=FAST, dislocated="femur")
     with pytest.raises(ValueError, match="metrics"):
         RegistrationSettings(metrics=("go", "mi"))
+    with pytest.raises(ValueError, match="stage2_restarts"):
+        RegistrationSettings(stage2_restarts=-1)
