@@ -255,3 +255,51 @@ def test_register_bad_input_writes_nothing(tmp_path):
         assert res.exit_code == 2, (args, res.output)
         assert message in res.output, res.output
         assert not out.exists()
+
+
+def test_register_a_simulated_case_end_to_end(tmp_path, monkeypatch):
+    """`pelvicnav simulate` then `pelvicnav register --plan --overlay`: every bone found."""
+    import numpy as np
+
+    from pelvicnav.geometry import transforms as tf
+    from pelvicnav.io.nifti import read_nifti
+
+    monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    case = tmp_path / "case"
+    res = runner.invoke(app, ["simulate", "--subject", "1", "--out", str(case), "--seed", "0"])
+    assert res.exit_code == 0, res.output
+    truth = json.loads((case / "truth.json").read_text())
+    # the patient moved by M after the images were set up: P' = P M, so each bone is at M^-1
+    M = tf.from_params([6.0, -5.0, 4.0], np.deg2rad([2.0, -1.0, 2.5]))
+    views = json.loads((case / "views.json").read_text())
+    for v in views["views"]:
+        v["projection_matrix"] = (np.asarray(v["projection_matrix"]) @ M).tolist()
+        v.pop("source_mm", None)
+    (case / "views.json").write_text(json.dumps(views))
+    plan = tmp_path / "plan.json"
+    plan.write_text(
+        json.dumps({"dislocated_bone": truth["dislocation"]["bone"],
+                    "target_from_current": np.eye(4).tolist()})
+    )  # fmt: skip
+    out = tmp_path / "result.json"
+    res = runner.invoke(app, [
+        "register", "--ct", str(case / "ct.nii.gz"), "--labels", str(case / "labels.nii.gz"),
+        "--views", str(case / "views.json"), "--plan", str(plan), "--out", str(out),
+        "--overlay", str(tmp_path / "overlays"), "--seed", "0",
+    ])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    result = json.loads(out.read_text())
+    assert result["converged"], result["warnings"]
+    # the CT is the patient as imaged (truth: the sacrum's pose), then moved by M^-1
+    labels, world_from_ijk = read_nifti(case / "labels.nii.gz")
+    setup = tf.invert(M) @ np.asarray(truth["poses_world_from_ct"]["sacrum"])
+    for value, bone in enumerate(("sacrum", "left_hip", "right_hip"), start=1):
+        c = tf.apply(world_from_ijk, np.argwhere(labels == value).mean(axis=0)[None])
+        err = np.linalg.norm(tf.apply(np.asarray(result["poses"][bone]), c) - tf.apply(setup, c))
+        assert err < 1.5, (bone, err)
+    assert "residual" in result and [s["name"] for s in result["stages"]] == ["stage 1", "stage 2"]
+    assert sorted(p.name for p in (tmp_path / "overlays").iterdir()) == [
+        "overlay_ap.png",
+        "overlay_oblique30.png",
+    ]
