@@ -488,6 +488,12 @@ def register(
             tuple(tuple(v.pixel_spacing) for v in vs),
         )
         settings = RegistrationSettings(dof=dof)
+        if the_plan is None:
+            console.print(
+                "[yellow]note:[/] no --plan: every bone gets the full search range and no "
+                "residual is computed; with the plan naming the dislocated bone the "
+                "registration is more reliable (docs/registration.md)"
+            )
         volume = Volume(np.asarray(data, dtype=np.float32), affine)
         try:  # one set of bone models for registration and overlays
             models = level_models(volume, lab, settings.factors)
