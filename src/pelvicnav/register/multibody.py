@@ -531,9 +531,11 @@ def register_multibody(
         fine = searched[-1] if searched else 0
         n_views = len(views.images)
 
-        def free(i: int) -> bool:
-            """Bone ``i`` gets the full stage-2 range (not held near the body by the plan)."""
-            return dislocated is None or bones[i] == dislocated
+        def with_block(y: NDArray, i: int, x: NDArray) -> NDArray:
+            """``y`` with bone ``i``'s 6 parameters replaced by ``x`` (a copy)."""
+            out = y.copy()
+            out[6 * i : 6 * i + 6] = x
+            return out
 
         def block_objective(i, y, lv, regularised=False):
             """Bone ``i``'s 6-DoF objective at level ``lv`` over the others' fixed DRR at ``y``
@@ -554,7 +556,8 @@ def register_multibody(
 
         def block_search(i, y, lv, x0, sweep, seed_i, regularised=False):
             """One bone's 6 DoF at level ``lv`` over the fixed DRR of the others (at ``y``)."""
-            t_i, r_i = cfg.stage2_range if free(i) else cfg.stage2_range_attached
+            held = dislocated is not None and bones[i] != dislocated  # near the body (plan)
+            t_i, r_i = cfg.stage2_range_attached if held else cfg.stage2_range
             box = np.array([t_i] * 3 + [r_i] * 3)
             return minimize_cmaes(
                 block_objective(i, y, lv, regularised),
@@ -602,8 +605,7 @@ def register_multibody(
                         res = block_search(i, y, lv, y[6 * i : 6 * i + 6], sweep,
                                            seed + 100 + 10 * lv + 3 * sweep + i)  # fmt: skip
                         stage2_levels.append(res)
-                        y = y.copy()
-                        y[6 * i : 6 * i + 6] = res.x
+                        y = with_block(y, i, res.x)
             if progress:
                 progress("stage 2", lv + 1, len(cfg.factors))
         # independent re-searches: a second answer that disagrees means the images do not pin
@@ -619,9 +621,8 @@ def register_multibody(
                 sl = slice(6 * i, 6 * i + 6)
                 x_alt = np.zeros(6)  # the stage-1 pose
                 for lv in searched:
-                    y_alt = y.copy()
-                    y_alt[sl] = x_alt
-                    res = block_search(i, y_alt, lv, x_alt, 0, seed + 1000 * (r + 1) + 10 * lv + i,
+                    seed_r = seed + 1000 * (r + 1) + 10 * lv + i
+                    res = block_search(i, with_block(y, i, x_alt), lv, x_alt, 0, seed_r,
                                        regularised=r % 2 == 0)  # fmt: skip
                     restart_runs.append(res)
                     x_alt = res.x
@@ -635,15 +636,13 @@ def register_multibody(
                 disagreement[bones[i]] = max(disagreement.get(bones[i], 0.0), d_mm)
                 apart = d_mm > cfg.ambiguity[0] or d_deg > cfg.ambiguity[1]
                 if res.f < f_now:
-                    y = y.copy()
-                    y[sl] = x_alt
+                    y = with_block(y, i, x_alt)
                     if apart:  # another basin: the other bones were fitted over a wrong DRR
                         for j in order:
                             rj = block_search(j, y, fine, y[6 * j : 6 * j + 6], 1,
                                               seed + 2000 * (r + 1) + j)  # fmt: skip
                             restart_runs.append(rj)
-                            y = y.copy()
-                            y[6 * j : 6 * j + 6] = rj.x
+                            y = with_block(y, j, rj.x)
                 if apart and abs(res.f - f_now) < cfg.ambiguity_score:  # both answers fit
                     ambiguous.append(
                         f"two searches for {bones[i]} from the same start ended {d_mm:.1f} mm / "
