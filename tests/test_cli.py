@@ -68,12 +68,13 @@ def test_atlas_info_real(real_atlas_path):
     assert "40 subjects, 5000 vertices/bone" in res.output
 
 
-def test_demo_without_atlas_runs_on_the_procedural_population(tmp_path, monkeypatch):
+def test_demo_without_atlas_runs_on_the_packaged_model(tmp_path, monkeypatch):
     monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     res = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])
     assert res.exit_code == 0, res.output
-    assert "C-arm views" in res.output and "from procedural" in res.output
+    assert "C-arm views" in res.output and "from model" in res.output
+    assert "the packaged pelvis model" in res.output
     assert "SPM_CC  target error" in res.output
     for name in ("atlas_projection.png", "target_pose.png"):
         assert (tmp_path / "demo" / name).read_bytes()[:4] == b"\x89PNG"
@@ -113,7 +114,9 @@ def test_study_commands_report_missing_atlas(tmp_path, monkeypatch):
 def test_population_study_and_spm_modes_offline(tmp_path, monkeypatch):
     monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    res = runner.invoke(app, ["study", "population", "--out", str(tmp_path / "p")])
+    res = runner.invoke(
+        app, ["study", "population", "--out", str(tmp_path / "p"), "--subjects", "3"]
+    )
     assert res.exit_code == 0, res.output
     assert "pelvic width" in (tmp_path / "p" / "sizes.md").read_text()
     assert (tmp_path / "p" / "population.png").read_bytes()[:4] == b"\x89PNG"
@@ -168,10 +171,13 @@ def test_simulate_bad_input(tiny_atlas, tmp_path):
 
 
 @pytest.mark.slow
-def test_simulate_without_atlas_uses_the_procedural_population(tmp_path, monkeypatch):
+def test_simulate_without_atlas_samples_the_packaged_model(tmp_path, monkeypatch):
     import numpy as np
 
     from pelvicnav.io.nifti import read_nifti
+    from pelvicnav.io.vtk_legacy import read_polydata
+    from pelvicnav.model import load_model
+    from pelvicnav.phantom.sampled import sampled_population
 
     monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
@@ -180,10 +186,22 @@ def test_simulate_without_atlas_uses_the_procedural_population(tmp_path, monkeyp
         app, ["simulate", "--subject", "3", "--out", str(out), "--views", "ap", "--seed", "1"]
     )
     assert res.exit_code == 0, res.output
-    assert "procedural pelvis population" in res.output
+    assert "sampled from the pelvis model" in res.output
     labels, _ = read_nifti(out / "labels.nii.gz")
     assert set(np.unique(labels)) == {0, 1, 2, 3}
-    assert json.loads((out / "truth.json").read_text())["subject_id"] == 3
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["subject_id"] == 3
+    # The ground-truth meshes: the sampled subject 3, as it lies in the written CT.
+    model = load_model()
+    subject = sampled_population(subject_ids=(3,)).vertices[0]
+    moved = truth["dislocation"]["bone"]
+    for b, bone in enumerate(("sacrum", "left_hip", "right_hip")):
+        points, faces = read_polydata(out / "meshes" / f"{bone}.vtk")
+        np.testing.assert_array_equal(faces, model.faces[b])
+        T = np.asarray(truth["poses_world_from_ct"][bone])
+        expected = subject[b] @ T[:3, :3].T + T[:3, 3]
+        np.testing.assert_allclose(points, expected, atol=1e-9)
+        assert (bone == moved) == (not np.allclose(T, np.eye(4)))
 
 
 @pytest.mark.atlas

@@ -29,6 +29,11 @@ study_app = typer.Typer(
     help="Reproduce the method's studies (tables, figures).", no_args_is_help=True
 )
 app.add_typer(study_app, name="study")
+model_app = typer.Typer(
+    help="The embedded pelvis model (shape, pose and planning models from the atlas).",
+    no_args_is_help=True,
+)
+app.add_typer(model_app, name="model")
 
 AtlasOption = Annotated[
     Path | None,
@@ -43,23 +48,25 @@ PopulationOption = Annotated[
     typer.Option(
         "--atlas",
         help=(
-            "Atlas folder, or 'procedural' for the built-in population (default: "
-            "$PELVICNAV_ATLAS, then the user cache, then the procedural population)."
+            "Atlas folder, 'model' for patients sampled from the packaged pelvis model, or "
+            "'procedural' for the template population (default: $PELVICNAV_ATLAS, then the user "
+            "cache, then the model)."
         ),
     ),
 ]
 
 
-def _population(location: str | None):
-    """The atlas, or the procedural population (see ``phantom.population.load_population``)."""
+def _population(location: str | None, subject_ids: tuple[int, ...] | None = None):
+    """The atlas, or a generated population (see ``phantom.population.load_population``)."""
     from rich.console import Console
 
-    from pelvicnav.phantom.population import load_population
+    from pelvicnav.phantom.population import MODEL, PROCEDURAL, load_population
 
-    a = load_population(location)
-    if a.source == "procedural":
+    a = load_population(location, subject_ids=subject_ids)
+    if a.source in (MODEL, PROCEDURAL):
+        what = "sampled from the pelvis model" if a.source == MODEL else "procedural templates"
         Console(stderr=True).print(
-            f"[yellow]using the procedural pelvis population ({a.n_subjects} subjects)[/]"
+            f"[yellow]no atlas: using {a.n_subjects} patient(s) {what}[/]", highlight=False
         )
     return a
 
@@ -243,20 +250,24 @@ def study_spm_modes(
 def study_population(
     out: Annotated[Path, typer.Option(help="Output folder (created).")] = Path("population"),
     atlas: AtlasOption = None,
-    subjects: Annotated[int, typer.Option(help="Procedural subjects to draw.")] = 40,
-    seed: Annotated[int, typer.Option(help="Seed of the procedural population.")] = 0,
+    subjects: Annotated[int, typer.Option(help="Subjects to draw.")] = 40,
+    seed: Annotated[int, typer.Option(help="Seed of the drawn population.")] = 0,
+    population: Annotated[
+        str, typer.Option(help="'model' (sampled from the pelvis model) or 'procedural'.")
+    ] = "model",
 ) -> None:
-    """Procedural population vs the atlas: size table (sizes.csv/.md) and population.png."""
+    """A generated population vs the atlas: size table (sizes.csv/.md) and population.png."""
     from rich.console import Console
     from rich.table import Table
 
     from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
-    from pelvicnav.phantom.population import procedural_population
+    from pelvicnav.phantom.population import MODEL, PROCEDURAL, load_population
     from pelvicnav.studies.population import run_population_study
 
     console = Console()
     try:
-        pop = procedural_population(subjects, seed=seed)
+        if population not in (MODEL, PROCEDURAL):
+            raise ValueError(f"--population must be 'model' or 'procedural', got {population!r}")
         try:
             reference = load_atlas(atlas)
         except AtlasNotFoundError as err:
@@ -264,11 +275,12 @@ def study_population(
                 raise
             console.print(f"[yellow]{err}[/]\nno atlas: the table shows the population only")
             reference = None
+        pop = load_population(population, n_subjects=subjects, seed=seed)
         rows = run_population_study(out, pop, reference)
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
     table = Table(
-        "measure (mm)", "procedural mean ± sd", "range", title=f"procedural population, seed {seed}"
+        "measure (mm)", "sampled mean ± sd", "range", title=f"{population} population, seed {seed}"
     )
     if reference is not None:
         for col in ("atlas mean ± sd", "range", "inside"):
@@ -276,8 +288,8 @@ def study_population(
     for r in rows:
         cells = [
             str(r["measure"]),
-            f"{r['procedural_mean']} ± {r['procedural_sd']}",
-            f"{r['procedural_min']}-{r['procedural_max']}",
+            f"{r['sampled_mean']} ± {r['sampled_sd']}",
+            f"{r['sampled_min']}-{r['sampled_max']}",
         ]
         if reference is not None:
             cells += [
@@ -363,9 +375,70 @@ def study_ssm_reference(atlas: AtlasOption = None) -> None:
     Console().print(table)
 
 
+@model_app.command("build")
+def model_build(
+    out: Annotated[Path, typer.Option(help="Model file to write (.npz).")],
+    atlas: AtlasOption = None,
+    variance: Annotated[
+        float, typer.Option(help="Fraction of each shape model's variance its modes keep.")
+    ] = 0.99,
+) -> None:
+    """Fit the pelvis model (SSMs, SPM, target planners) from the atlas and write it."""
+    from rich.console import Console
+
+    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.model import build_model, save_model
+
+    console = Console()
+    try:
+        a = load_atlas(atlas)
+        with console.status("fitting") as status:
+            model = build_model(a, variance_kept=variance, progress=status.update)
+        save_model(model, out)
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    modes = model.provenance["shape_modes"]
+    console.print(
+        f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) from {a.n_subjects} subjects; "
+        f"shape modes {modes}"
+    )
+
+
+@model_app.command("info")
+def model_info(
+    model: Annotated[
+        Path | None,
+        typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
+    ] = None,
+) -> None:
+    """Print the pelvis model's provenance and sizes."""
+    from rich.console import Console
+
+    from pelvicnav.model import ModelFileError, load_model, resolve_model_path
+
+    try:
+        path = resolve_model_path(model)
+        m = load_model(path)
+    except (FileNotFoundError, ModelFileError) as err:
+        raise _fail(str(err)) from None
+    p = m.provenance
+    console = Console()
+    console.print(f"[bold]pelvis model[/] {path}", highlight=False)
+    console.print(f"{p.get('atlas')} — {p.get('reference')}, doi:{p.get('doi')}")
+    console.print(f"licence {p.get('licence')}; {p.get('note')}")
+    console.print(
+        f"{len(m.subject_ids)} subjects, {m.n_vertices} vertices per bone, shape modes "
+        f"{ {b: s.n_modes for b, s in m.shapes.items()} }, pose modes {m.population.n_modes}"
+    )
+    console.print("planners for observed bones: " + "; ".join(" + ".join(k) for k in m.planners))
+    console.print(f"built {p.get('created')} by pelvicnav {p.get('pelvicnav_version')}")
+
+
 @app.command("simulate")
 def simulate(
-    subject: Annotated[int, typer.Option(help="Subject id (atlas id, or 1-40 procedural).")],
+    subject: Annotated[
+        int, typer.Option(help="Subject id (atlas id; any id >= 1 of a sampled population).")
+    ],
     out: Annotated[Path, typer.Option(help="Output folder.")],
     atlas: PopulationOption = None,
     pattern: Annotated[str, typer.Option(help="si, ps or open-book.")] = "open-book",
@@ -393,7 +466,7 @@ def simulate(
 
     console = Console()
     try:
-        a = _population(atlas)
+        a = _population(atlas, subject_ids=(subject,) if subject >= 1 else None)
         vertices = a.vertices[a.subject_index(subject)]
         with console.status(f"simulating subject {subject} ({pattern}, {dose} uGy/frame)"):
             truth = simulate_case(

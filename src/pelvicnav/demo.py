@@ -25,7 +25,8 @@ def _views() -> dict[str, pj.CArm]:
 def run_demo(out: Path, *, atlas: str | os.PathLike | None = None) -> None:
     """Print the C-arm geometry, project a pelvis into views and plan a reduction.
 
-    Uses the atlas when one is configured, else the procedural population.
+    Uses the atlas when one is configured, else a patient sampled from the packaged pelvis model
+    (planned with the model's own planner; the model never saw a sampled patient).
     """
     from rich.console import Console
     from rich.table import Table
@@ -59,20 +60,25 @@ def run_demo(out: Path, *, atlas: str | os.PathLike | None = None) -> None:
         + f"geodesic distance to identity {tf.distance(np.eye(4), T):.3f}"
     )
 
-    a = load_population(atlas)
-    console.print(f"atlas: {a.n_subjects} subjects from {a.source}")
+    a = load_population(atlas, n_subjects=1)
+    console.print(f"population: {a.n_subjects} subject(s) from {a.source}")
     out.mkdir(parents=True, exist_ok=True)
     path = out / "atlas_projection.png"
     _projection_figure(a, views, path)
     console.print(f"wrote {path}")
-    if a.n_subjects < 10:
+    if a.n_subjects < 10 and a.source != "model":
         console.print(f"[yellow]planning demo skipped: {a.n_subjects} subjects is too few[/]")
         return
     _planning_demo(a, out, console)
 
 
 def _planning_demo(a, out: Path, console) -> None:
-    """Dislocate subject 1's left hip and estimate its target pose from models of the others."""
+    """Dislocate subject 1's left hip and estimate its target pose.
+
+    With the atlas the models come from the other subjects; a sampled patient is planned with the
+    packaged model (fitted on the atlas, so it never saw this patient).
+    """
+    from pelvicnav.phantom.population import MODEL
     from pelvicnav.pose.target import TargetPlanner
     from pelvicnav.studies.target_pose import pose_errors, random_dislocation
 
@@ -80,11 +86,18 @@ def _planning_demo(a, out: Path, console) -> None:
     truth = V[0, 1]
     D, dmm, ddeg = random_dislocation(np.random.default_rng(1), truth.mean(axis=0), 20.0, 10.0)
     current = tf.apply(D, truth)
-    planner = TargetPlanner.fit(V[1:], a.faces, observed=("sacrum", "right_hip"))
     observed = {"sacrum": V[0, 0], "right_hip": V[0, 2]}
+    if a.source == MODEL:
+        from pelvicnav.model import load_model
+
+        planner = load_model().planner(observed)
+        where = "the packaged pelvis model"
+    else:
+        planner = TargetPlanner.fit(V[1:], a.faces, observed=("sacrum", "right_hip"))
+        where = f"models from the other {a.n_subjects - 1} subjects"
     console.print(
         f"plan: subject {a.subject_ids[0]}'s left hip dislocated by {dmm:.1f} mm / {ddeg:.1f} deg; "
-        f"models from the other {a.n_subjects - 1} subjects"
+        f"{where}"
     )
     estimates = {}
     for name, refine in (("SPM", "none"), ("SPM_CC", "joint")):

@@ -145,8 +145,9 @@ def test_bad_arguments():
 def test_load_population_falls_back_only_without_a_configured_atlas(tmp_path, monkeypatch):
     monkeypatch.delenv(ATLAS_ENV, raising=False)
     monkeypatch.setattr("pelvicnav.io.atlas.default_atlas_dir", lambda: tmp_path / "none")
-    assert load_population(n_subjects=2).source == "procedural"
-    assert load_population("procedural", n_subjects=2).n_subjects == 2
+    assert load_population(n_subjects=2).source == "model"
+    assert load_population("procedural", n_subjects=2).source == "procedural"
+    assert load_population("model", subject_ids=(5,)).subject_ids == (5,)
     with pytest.raises(AtlasNotFoundError):
         load_population(tmp_path / "missing")
     monkeypatch.setenv(ATLAS_ENV, str(tmp_path / "missing"))

@@ -126,3 +126,17 @@ def test_our_ssm_matches_the_atlas_statismo_models(real_atlas_path):
         assert c["mean_rms_relative"] < 0.02  # < 2% of the bone's RMS radius
         assert c["spectrum_correlation"] > 0.99
         assert c["max_fraction_difference"] < 0.05
+
+
+def test_study_fits_per_fold_models_never_the_packaged_one(synthetic_atlas, tmp_path, monkeypatch):
+    """The packaged model was fitted on every atlas subject: scoring it on them would leak."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the leave-one-out study must not load the packaged pelvis model")
+
+    monkeypatch.setattr("pelvicnav.model.file._read", refuse)
+    monkeypatch.setattr("pelvicnav.model.load_model", refuse)
+    monkeypatch.setattr("pelvicnav.model.file.load_model", refuse)
+    settings = TargetPoseSettings(subjects=(1,), seed=0, methods=("SPM_CC",))
+    rows = run_target_pose_study(synthetic_atlas, tmp_path, settings)
+    assert rows and all(r["method"] == "SPM_CC" for r in rows)

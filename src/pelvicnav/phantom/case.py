@@ -5,6 +5,8 @@ and moved into place only when everything succeeded):
 
 * ``ct.nii.gz`` - the dislocated CT (HU), ``labels.nii.gz`` - its label map (1, 2, 3);
 * ``views.json`` + ``<view>.npy`` - radiographs (line integrals) and projection matrices;
+* ``meshes/{sacrum,left_hip,right_hip}.vtk`` - the ground-truth bone surfaces as they lie in
+  ``ct.nii.gz`` (the dislocated bone moved), LPS mm, in the population's vertex order;
 * ``truth.json`` - per-bone ``world_from_ct`` poses (the dislocated bone's is the dislocation),
   the dislocation, the femoral heads and the C-arm parameters of every view.
 """
@@ -23,7 +25,7 @@ from numpy.typing import ArrayLike
 
 __all__ = ["simulate_case"]
 
-BONES = ("sacrum", "left_hip", "right_hip")
+from pelvicnav import BONES
 
 
 def simulate_case(
@@ -52,6 +54,7 @@ def simulate_case(
     from pelvicnav.geometry import transforms as tf
     from pelvicnav.io.nifti import write_nifti
     from pelvicnav.io.views import View, write_views
+    from pelvicnav.io.vtk_legacy import write_polydata
     from pelvicnav.phantom.ctsynth import synthesize_ct
     from pelvicnav.phantom.dislocate import apply_dislocation, draw_dislocation
     from pelvicnav.phantom.xray import (
@@ -128,6 +131,12 @@ def simulate_case(
         write_nifti(tmp / "ct.nii.gz", hu_int16, moved_ct.hu.world_from_ijk)
         write_nifti(tmp / "labels.nii.gz", moved_ct.labels, moved_ct.hu.world_from_ijk)
         write_views(tmp, radiographs, degrees_of_freedom=6)
+        (tmp / "meshes").mkdir()
+        for b, bone in enumerate(BONES):
+            title = f"pelvicnav simulate subject {subject_id} {bone} (LPS mm, CT frame)"
+            write_polydata(
+                tmp / "meshes" / f"{bone}.vtk", moved[b], faces[b], binary=True, title=title
+            )
         (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
         out.mkdir(parents=True, exist_ok=True)
         for f in tmp.iterdir():

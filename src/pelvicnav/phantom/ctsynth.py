@@ -195,7 +195,7 @@ def femoral_head(
     ValueError
         If no concave spherical patch of plausible size is found.
     """
-    from pelvicnav.pose.collision import vertex_normals
+    from pelvicnav.shape.mesh import vertex_normals
 
     V = np.asarray(hip_vertices, dtype=np.float64)
     N = vertex_normals(V, hip_faces)
@@ -371,7 +371,7 @@ def synthesize_ct(
     beads = np.zeros((0, 3))
     bead_bones = np.zeros(0, dtype=np.int64)
     if opt.beads > 0:
-        from pelvicnav.pose.collision import vertex_normals
+        from pelvicnav.shape.mesh import vertex_normals
 
         bead_bones = rng.integers(0, 3, opt.beads) + 1
         beads = np.empty((opt.beads, 3))

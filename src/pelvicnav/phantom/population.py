@@ -1,4 +1,8 @@
-"""A procedural pelvis population: the offline stand-in for the atlas.
+"""A procedural pelvis population (plain anatomical templates), and which population to load.
+
+The offline default is no longer this one but patients sampled from the packaged pelvis model
+(:mod:`pelvicnav.phantom.sampled`); the templates stay for tests that want exactly known joints
+and a population without any model (``--atlas procedural``).
 
 Each bone is first built once as a *template*: an implicit solid (signed-distance-like field)
 made of anatomical parts blended with a smooth minimum, meshed with marching cubes and decimated
@@ -30,6 +34,7 @@ from __future__ import annotations
 
 import functools
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +43,7 @@ from numpy.typing import NDArray
 from pelvicnav.io.atlas import BONES, Atlas
 
 __all__ = [
+    "MODEL",
     "PROCEDURAL",
     "PS_GAP_MM",
     "SI_GAP_MM",
@@ -403,20 +409,29 @@ def atlas_statistics(atlas: Atlas) -> dict[str, NDArray[np.float64]]:
 
 
 PROCEDURAL = "procedural"
+MODEL = "model"
 
 
 def load_population(
-    location: str | os.PathLike | None = None, *, n_subjects: int = 40, seed: int = 0
+    location: str | os.PathLike | None = None,
+    *,
+    n_subjects: int = 40,
+    seed: int = 0,
+    subject_ids: Sequence[int] | None = None,
 ) -> Atlas:
-    """The real atlas when there is one, else the procedural population.
+    """The real atlas when there is one, else patients sampled from the packaged pelvis model.
 
     Parameters
     ----------
-    location : path, ``"procedural"`` or None
-        An atlas folder (must hold an atlas), ``"procedural"`` for the built-in population, or
-        None: ``$PELVICNAV_ATLAS`` when set (must hold an atlas), else the user cache, falling back
-        to the procedural population (``n_subjects`` subjects drawn with ``seed``) when the cache
-        has none.
+    location : path, ``"model"``, ``"procedural"`` or None
+        An atlas folder (must hold an atlas); ``"model"`` for patients sampled from the pelvis
+        model (:func:`pelvicnav.phantom.sampled.sampled_population`); ``"procedural"`` for the
+        procedural templates; or None: ``$PELVICNAV_ATLAS`` when set (must hold an atlas), else the
+        user cache, falling back to the model's population when the cache has none.
+    n_subjects, seed : int
+        Size and seed of a generated population.
+    subject_ids : sequence of int, optional
+        For the model's population: draw only these subjects (the same as in the full one).
 
     Raises
     ------
@@ -424,12 +439,18 @@ def load_population(
         An explicit folder, or ``$PELVICNAV_ATLAS``, without an atlas.
     """
     from pelvicnav.io.atlas import ATLAS_ENV, AtlasNotFoundError, load_atlas
+    from pelvicnav.phantom.sampled import sampled_population
 
-    if location is not None and str(location) == PROCEDURAL:
-        return procedural_population(n_subjects, seed=seed)
+    def generated() -> Atlas:
+        if location is not None and str(location) == PROCEDURAL:
+            return procedural_population(n_subjects, seed=seed)
+        return sampled_population(n_subjects, seed=seed, subject_ids=subject_ids)
+
+    if location is not None and str(location) in (PROCEDURAL, MODEL):
+        return generated()
     try:
         return load_atlas(location)
     except AtlasNotFoundError:
         if location is not None or os.environ.get(ATLAS_ENV):
             raise
-        return procedural_population(n_subjects, seed=seed)
+        return generated()

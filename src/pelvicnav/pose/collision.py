@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pelvicnav.shape.mesh import vertex_normals
+
 __all__ = [
     "JOINTS",
     "JointSurface",
@@ -26,7 +28,7 @@ __all__ = [
     "joint_gaps",
     "ray_triangle_distances",
     "refine_translation",
-    "vertex_normals",
+    "vertex_normals",  # re-exported from pelvicnav.shape.mesh
 ]
 
 # (bone a, bone b) pairs that articulate, in canonical bone order.
@@ -67,33 +69,6 @@ class JointSurface:
         if bone not in self.bones:
             raise ValueError(f"{bone} is not part of the joint {self.bones}")
         return self.bones.index(bone)
-
-
-def vertex_normals(vertices: ArrayLike, faces: ArrayLike) -> NDArray[np.float64]:
-    """Area-weighted unit vertex normals, oriented outwards (positive enclosed volume).
-
-    Parameters
-    ----------
-    vertices : (n, 3) float
-    faces : (m, 3) int
-
-    Returns
-    -------
-    (n, 3) float64
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    fn = np.cross(b - a, c - a)  # twice the area times the unit normal
-    # Signed volume (divergence theorem); the atlas meshes are not closed, but the sign is reliable.
-    volume = np.sum(np.einsum("ij,ij->i", a - v.mean(axis=0), fn)) / 6.0
-    if volume < 0:
-        fn = -fn
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(norm > 0, norm, 1.0)
 
 
 def find_joint_surfaces(

@@ -27,13 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pelvicnav import BONES
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.geometry.procrustes import fit_transform
-from pelvicnav.pose.collision import JOINTS, JointSurface, as_gap_array, vertex_normals
+from pelvicnav.pose.collision import JOINTS, JointSurface, as_gap_array
+from pelvicnav.shape.mesh import vertex_normals
 
-__all__ = ["JointSpaceModel", "subject_plane_gaps"]
-
-BONES = ("sacrum", "left_hip", "right_hip")
+__all__ = ["JointSide", "JointSpaceModel", "subject_plane_gaps"]
 
 
 def subject_plane_gaps(
@@ -80,7 +80,7 @@ def subject_plane_gaps(
 
 
 @dataclass(frozen=True)
-class _Side:
+class JointSide:
     """What is learned for one bone moving against one partner at one joint."""
 
     mover: str
@@ -114,7 +114,7 @@ class JointSpaceModel:
         Point-to-plane pairs further apart than this are ignored in an iteration.
     """
 
-    sides: dict[tuple[tuple[str, str], str], _Side]
+    sides: dict[tuple[tuple[str, str], str], JointSide]
     spm_weight: float = 0.3
     prior_weight: float = 0.01
     region_radius: float = 30.0
@@ -182,7 +182,7 @@ class JointSpaceModel:
                     g_mean = np.nanmean(np.where(seen, g, 0.0), axis=0)
                     g_var = np.nanvar(np.where(seen, g, 0.0), axis=0) + 1e-3
                 plane_w = np.where(seen, 1 / g_var, 0.0)
-                sides[(pair, mover)] = _Side(
+                sides[(pair, mover)] = JointSide(
                     mover=mover,
                     partner=partner,
                     vertices=idx,

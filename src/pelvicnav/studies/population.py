@@ -1,4 +1,5 @@
-"""The procedural population against the real atlas: a size table and a figure."""
+"""A generated population (sampled from the model, or procedural) against the real atlas: a size
+table and a figure."""
 
 from __future__ import annotations
 
@@ -33,12 +34,13 @@ def size_table(
 ) -> list[dict[str, object]]:
     """Rows of mean, sd, min and max (mm) per size measure, with the reference's when given.
 
-    ``inside`` is True when our min..max lies within the reference's min..max.
+    ``inside`` is True when our min..max lies within the reference's min..max;
+    ``mean_difference_pct`` is our mean against the reference's, in percent.
     """
     rows = []
     for key, axis, label in _MEASURES:
         row: dict[str, object] = {"measure": label}
-        for name, stats in (("procedural", ours), ("atlas", reference)):
+        for name, stats in (("sampled", ours), ("atlas", reference)):
             if stats is None:
                 continue
             v = np.asarray(stats[key], dtype=float)
@@ -50,9 +52,11 @@ def size_table(
                 f"{name}_max": round(float(v.max()), 1),
             }
         if reference is not None:
+            row["mean_difference_pct"] = round(
+                100 * (row["sampled_mean"] / row["atlas_mean"] - 1), 1
+            )
             row["inside"] = bool(
-                row["procedural_min"] >= row["atlas_min"]
-                and row["procedural_max"] <= row["atlas_max"]
+                row["sampled_min"] >= row["atlas_min"] and row["sampled_max"] <= row["atlas_max"]
             )
         rows.append(row)
     return rows
@@ -60,21 +64,21 @@ def size_table(
 
 def _markdown(rows: list[dict[str, object]]) -> str:
     has_ref = "atlas_mean" in rows[0]
-    head = "| measure (mm) | procedural mean ± sd | procedural range |"
+    head = "| measure (mm) | sampled mean ± sd | sampled range |"
     sep = "|---|---|---|"
     if has_ref:
-        head += " atlas mean ± sd | atlas range | inside |"
-        sep += "---|---|---|"
+        head += " atlas mean ± sd | atlas range | inside | mean difference % |"
+        sep += "---|---|---|---|"
     lines = [head, sep]
     for r in rows:
         line = (
-            f"| {r['measure']} | {r['procedural_mean']} ± {r['procedural_sd']} | "
-            f"{r['procedural_min']}–{r['procedural_max']} |"
+            f"| {r['measure']} | {r['sampled_mean']} ± {r['sampled_sd']} | "
+            f"{r['sampled_min']}–{r['sampled_max']} |"
         )
         if has_ref:
             line += (
                 f" {r['atlas_mean']} ± {r['atlas_sd']} | {r['atlas_min']}–{r['atlas_max']} |"
-                f" {'yes' if r['inside'] else 'NO'} |"
+                f" {'yes' if r['inside'] else 'NO'} | {r['mean_difference_pct']:+.1f} |"
             )
         lines.append(line)
     return "\n".join(lines) + "\n"
