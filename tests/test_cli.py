@@ -70,6 +70,7 @@ def test_atlas_info_real(real_atlas_path):
 
 def test_demo_without_atlas_runs_on_the_packaged_model(tmp_path, monkeypatch):
     monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
+    monkeypatch.setenv("COLUMNS", "200")  # rich wraps at the terminal width
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     res = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])
     assert res.exit_code == 0, res.output

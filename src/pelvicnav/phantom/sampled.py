@@ -10,9 +10,10 @@ Each subject draws, from one seeded generator per subject:
    size: its width then spread a third wider than in the atlas);
 3. a small rigid placement of the whole pelvis in its "CT" frame.
 
-A draw whose sizes (bone extents, pelvic width) leave the model's envelope of the training
-subjects is drawn again: clipping each mode at 2.5 sd does not bound a size, and a population
-spread like the atlas (its standard deviations match within ~15%) would otherwise put a few
+A draw whose meshes still cross themselves after untangling (rare: a fold at the sacral base,
+next to the atlas's own defect there) is drawn again, and so is one whose sizes (bone extents,
+pelvic width) leave the model's envelope of the training subjects: clipping each mode at 2.5 sd
+does not bound a size, and a population spread like the atlas would otherwise put a few
 patients a few mm beyond the largest or smallest pelvis the model was fitted from.
 
 Any crossing of a bone's surface through itself (the linear model can push the two sheets of a
@@ -73,7 +74,7 @@ def sample_subject(
     shape_weights: dict[str, NDArray[np.float64]],
     ct_from_model: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
-    """Vertices ``(3, n_vertices, 3)`` (mm) of one pelvis for given weights.
+    """Vertices of one pelvis for given weights, and the crossings untangling could not remove.
 
     Parameters
     ----------
@@ -83,14 +84,22 @@ def sample_subject(
     shape_weights : dict bone -> (n_shape_modes,) float
     ct_from_model : (4, 4) float, optional
         Rigid placement in the CT frame (default identity).
+
+    Returns
+    -------
+    vertices : (3, n_vertices, 3) float64, mm
+    crossings : int
+        Triangle pairs still crossing after :func:`~pelvicnav.shape.mesh.untangle` (0 normally).
     """
     from pelvicnav.shape.mesh import untangle
 
     placement = np.eye(4) if ct_from_model is None else np.asarray(ct_from_model, float)
     out = _placed_shapes(model, pose_weights, shape_weights)
+    crossings = 0
     for b in range(3):
-        out[b], _ = untangle(tf.apply(placement, out[b]), model.faces[b])
-    return out
+        out[b], left = untangle(tf.apply(placement, out[b]), model.faces[b])
+        crossings += left
+    return out, crossings
 
 
 def _placed_shapes(model, pose_weights, shape_weights) -> NDArray[np.float64]:
@@ -195,8 +204,13 @@ def sampled_population(
     for s, subject in enumerate(ids):
         # Subject k's stream is the k-th child of the seed, whatever else is drawn.
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(subject - 1,)))
-        pose, shape, placement = _draw_inside_envelope(model, rng, opt)
-        out[s] = sample_subject(model, pose, shape, placement)
+        for _ in range(opt.max_draws):
+            pose, shape, placement = _draw_inside_envelope(model, rng, opt)
+            out[s], crossings = sample_subject(model, pose, shape, placement)
+            if crossings == 0:  # rare: a sacral-base fold the untangling cannot undo
+                break
+        else:
+            raise ValueError(f"subject {subject}: no draw without self-crossing meshes")
     return Atlas(
         subject_ids=ids,
         vertices=out,

@@ -322,6 +322,7 @@ def untangle(
     faces: ArrayLike,
     *,
     max_iter: int = 60,
+    patience: int = 15,
     schedule: tuple[tuple[float, float], ...] = ((0.9, 0.3), (0.5, 0.1)),
 ) -> tuple[NDArray[np.float64], int]:
     """Remove self-intersections by moving only the vertices of crossing triangles.
@@ -340,6 +341,8 @@ def untangle(
         A closed mesh (:func:`close_mesh`).
     max_iter : int
         Rounds per attempt.
+    patience : int
+        An attempt stops after this many rounds without fewer crossings than the best so far.
     schedule : sequence of (smoothing, inflation mm)
         Attempts, each from the input shape, until one leaves no crossing; smoothing is the step
         towards the neighbours' mean (0-1), inflation the push along the normal per round.
@@ -358,12 +361,13 @@ def untangle(
     for smoothing, inflation in schedule:
         if best_left == 0:
             break
-        v = x.copy()
+        v, stalled = x.copy(), 0
         for _ in range(max_iter):
             pairs = self_intersections(v, f)
+            stalled = 0 if len(pairs) < best_left else stalled + 1
             if len(pairs) < best_left:
                 best, best_left = v.copy(), len(pairs)
-            if len(pairs) == 0:
+            if len(pairs) == 0 or stalled > patience:
                 break
             _untangle_step(v, f, pairs, ring, degree, smoothing, inflation)
         else:
