@@ -322,3 +322,26 @@ def test_register_a_simulated_case_end_to_end(tmp_path, monkeypatch):
         "overlay_ap.png",
         "overlay_oblique30.png",
     ]
+
+
+def test_model_info_and_bad_model_files(tmp_path):
+    res = runner.invoke(app, ["model", "info"])
+    assert res.exit_code == 0, res.output
+    assert "10.1088/1361-6560/ab1456" in res.output and "not for clinical use" in res.output
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"PK\x03\x04 not really a zip")
+    res = runner.invoke(app, ["model", "info", "--model", str(bad)])
+    assert res.exit_code == 2
+    assert "not a readable pelvis model" in res.output
+    res = runner.invoke(app, ["model", "info", "--model", str(tmp_path / "none.npz")])
+    assert res.exit_code == 2 and "no pelvis model file" in res.output
+
+
+def test_model_build_needs_an_atlas(tmp_path, monkeypatch):
+    monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
+    out = tmp_path / "m.npz"
+    res = runner.invoke(
+        app, ["model", "build", "--out", str(out), "--atlas", str(tmp_path / "nowhere")]
+    )
+    assert res.exit_code == 2 and "no pelvis atlas" in res.output
+    assert not out.exists()
