@@ -55,7 +55,8 @@ class SamplingOptions:
     clip : float
         Every combined mode's weight is clipped at this many standard deviations.
     max_draws : int
-        Draws per subject before giving up on one inside the size envelope.
+        Draws per subject before giving up on one inside the size envelope (and, separately,
+        on one whose meshes untangle).
     placement_rotation_deg : (3,) float
         Standard deviation of the pelvis's rotation in its CT frame about x, y and z.
     placement_translation_mm : float
@@ -73,7 +74,7 @@ def sample_subject(
     pose_weights: NDArray[np.float64],
     shape_weights: dict[str, NDArray[np.float64]],
     ct_from_model: NDArray[np.float64] | None = None,
-) -> NDArray[np.float64]:
+) -> tuple[NDArray[np.float64], int]:
     """Vertices of one pelvis for given weights, and the crossings untangling could not remove.
 
     Parameters
