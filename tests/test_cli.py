@@ -246,7 +246,7 @@ def test_register_bad_input_writes_nothing(tmp_path):
     A = np.diag([2.0, 2.0, 2.0, 1.0])
     ct = np.full((20, 20, 20), 300, dtype=np.int16)
     labels = np.zeros((20, 20, 20), dtype=np.uint8)
-    labels[2:6], labels[8:12], labels[14:18] = 1, 2, 3
+    labels[8:12], labels[14:18], labels[2:6] = 1, 2, 3  # sacrum between, left hip at +x (LPS)
     write_nifti(tmp_path / "ct.nii.gz", ct, A)
     write_nifti(tmp_path / "labels.nii.gz", labels, A)
     write_nifti(tmp_path / "two.nii.gz", np.where(labels == 3, 0, labels).astype(np.uint8), A)
@@ -261,7 +261,7 @@ def test_register_bad_input_writes_nothing(tmp_path):
     base = ["register", "--ct", str(tmp_path / "ct.nii.gz"), "--out", str(out)]
     views = ["--views", str(tmp_path / "views.json")]
     for args, message in (
-        (["--labels", str(tmp_path / "two.nii.gz"), *views], "no voxel of right_hip"),
+        (["--labels", str(tmp_path / "two.nii.gz"), *views], "right_hip (label 3) has 0 mm^3"),
         (["--labels", str(tmp_path / "labels.nii.gz"), "--views", str(tmp_path / "broken.json")],
          "not valid JSON"),
         (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--dof", "7"], "--dof must be"),
@@ -345,3 +345,30 @@ def test_model_build_needs_an_atlas(tmp_path, monkeypatch):
     )
     assert res.exit_code == 2 and "no pelvis atlas" in res.output
     assert not out.exists()
+
+
+def test_register_refuses_a_totalsegmentator_map_passed_as_ours(tmp_path):
+    """Its labels 1-3 are the spleen and kidneys: registering them as bones is silent garbage."""
+    import numpy as np
+
+    from helpers.labels import label_phantom
+    from pelvicnav.geometry.projection import CArm
+    from pelvicnav.io.nifti import write_nifti
+    from pelvicnav.io.views import View, write_views
+
+    hu, _, total, affine = label_phantom()
+    write_nifti(tmp_path / "ct.nii.gz", hu.astype(np.int16), affine)
+    write_nifti(tmp_path / "seg.nii.gz", total, affine)
+    carm = CArm()
+    write_views(tmp_path, [View("ap", np.zeros((16, 16), np.float32), carm.projection_matrix,
+                                carm.pixel_spacing)])  # fmt: skip
+    out = tmp_path / "result.json"
+    args = ["register", "--ct", str(tmp_path / "ct.nii.gz"), "--labels",
+            str(tmp_path / "seg.nii.gz"), "--views", str(tmp_path / "views.json"),
+            "--out", str(out)]  # fmt: skip
+    res = runner.invoke(app, args)
+    assert res.exit_code == 2, res.output
+    assert "seg.nii.gz" in res.output and "totalsegmentator" in res.output
+    assert not out.exists()
+    res = runner.invoke(app, [*args, "--label-scheme", "sacrum=25;left_hip=77"])
+    assert res.exit_code == 2 and "no label for right_hip" in res.output

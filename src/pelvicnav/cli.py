@@ -524,6 +524,13 @@ def register(
     overlay: Annotated[
         Path | None, typer.Option(help="Folder for overlay PNGs (one per view).")
     ] = None,
+    label_scheme: Annotated[
+        str,
+        typer.Option(
+            help="Labels of the map: 'ours' (1 sacrum, 2 left, 3 right hip), 'totalsegmentator' "
+            "(25/26, 77, 78) or 'sacrum=25,26;left_hip=77;right_hip=78'."
+        ),
+    ] = "ours",
 ) -> None:
     """Register the three bones of a CT to radiographs (two-stage multi-body 3D-2D)."""
     import json
@@ -542,6 +549,7 @@ def register(
         level_models,
         register_multibody,
     )
+    from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
 
     console = Console()
     try:
@@ -555,6 +563,9 @@ def register(
             raise ValueError(
                 f"{labels}: label map grid {lab.shape} does not match the CT's {data.shape}"
             )
+        raw_labels = lab
+        lab = to_bone_labels(lab, parse_scheme(label_scheme))
+        check_bone_labels(data, lab, affine, source=str(labels), raw_labels=raw_labels)
         rv = RegistrationViews(
             tuple(v.image for v in vs),
             tuple(v.projection_matrix for v in vs),
