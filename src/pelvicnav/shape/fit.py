@@ -89,16 +89,9 @@ def _rms(vertices, surface, tree_surface) -> float:
 
 def _refine_free_form(vertices, faces, surface, tree, *, rounds: int, smooth: int):
     """Closest-point displacements, smoothed over the mesh's edges, applied ``rounds`` times."""
-    import scipy.sparse as sp
+    from pelvicnav.shape.mesh import edge_adjacency
 
-    from pelvicnav.shape.mesh import edge_counts
-
-    n = len(vertices)
-    edges, _ = edge_counts(faces)
-    ring = sp.coo_matrix(
-        (np.ones(2 * len(edges)), (edges.ravel(), edges[:, ::-1].ravel())), shape=(n, n)
-    ).tocsr()
-    degree = np.maximum(np.asarray(ring.sum(axis=1)).ravel(), 1.0)
+    ring, degree = edge_adjacency(faces, len(vertices))
     v = vertices.copy()
     for _ in range(rounds):
         d, j = tree.query(v)

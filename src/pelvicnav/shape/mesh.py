@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 __all__ = [
     "boundary_edges",
     "close_mesh",
+    "edge_adjacency",
     "edge_counts",
     "inpaint_vertices",
     "is_closed",
@@ -241,10 +242,14 @@ def self_intersections(
     return np.sort(pairs[hit], axis=1)
 
 
-def _adjacency(faces: NDArray, n: int):
+def edge_adjacency(faces: ArrayLike, n: int):
+    """Vertex adjacency over the mesh's edges: ``(sparse (n, n) 0/1 matrix, degree (n,))``.
+
+    The degree is at least 1, so dividing by it is safe for unused vertices.
+    """
     import scipy.sparse as sp
 
-    edges, _ = edge_counts(faces)
+    edges, _ = edge_counts(np.asarray(faces))
     ring = sp.coo_matrix(
         (np.ones(2 * len(edges)), (edges.ravel(), edges[:, ::-1].ravel())), shape=(n, n)
     ).tocsr()
@@ -307,7 +312,7 @@ def inpaint_vertices(
     miss = np.asarray(missing, dtype=bool)
     if not miss.any():
         return v
-    ring, degree = _adjacency(np.asarray(faces), len(v))
+    ring, degree = edge_adjacency(faces, len(v))
     laplacian = (diags(np.ones(len(v))) - diags(1.0 / degree) @ ring).tocsr()
     delta = laplacian @ ref
     L_mm = laplacian[miss][:, miss].tocsc()
@@ -356,7 +361,7 @@ def untangle(
     """
     x = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    ring, degree = _adjacency(f, len(x))
+    ring, degree = edge_adjacency(f, len(x))
     best, best_left = x.copy(), len(self_intersections(x, f))
     for smoothing, inflation in schedule:
         if best_left == 0:
