@@ -434,6 +434,47 @@ def model_info(
     console.print(f"built {p.get('created')} by pelvicnav {p.get('pelvicnav_version')}")
 
 
+@app.command("segment")
+def segment(
+    ct: Annotated[Path, typer.Argument(help="CT (NIfTI, HU).")],
+    out: Annotated[Path, typer.Option(help="Output folder.")],
+    labels: Annotated[
+        Path | None, typer.Option(help="Existing label map to fit the model to (same grid).")
+    ] = None,
+    label_scheme: Annotated[
+        str,
+        typer.Option(
+            help="'ours' (1 sacrum, 2 left, 3 right hip), 'totalsegmentator' or "
+            "'sacrum=25,26;left_hip=77;right_hip=78'."
+        ),
+    ] = "ours",
+    model: Annotated[
+        Path | None,
+        typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
+    ] = None,
+) -> None:
+    """Bones of a CT as corresponded meshes (VTK, STL) and a label map, with contours."""
+    from rich.console import Console
+
+    from pelvicnav.model import load_model
+    from pelvicnav.workflow.segment import segment as run_segment
+
+    console = Console()
+    try:
+        with console.status(f"fitting the pelvis model to {labels}"):
+            record = run_segment(
+                ct, out, labels=labels, label_scheme=label_scheme, model=load_model(model)
+            )
+    except (FileNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    for bone, r in record["bones"].items():
+        console.print(
+            f"{bone}: Dice {r['dice_fitted_vs_labels']:.3f} against the labels, "
+            f"RMS {r['rms_mm']:.2f} mm"
+        )
+    console.print(f"wrote {out} ({record['seconds']['fit']:.1f} s fitting)")
+
+
 @app.command("simulate")
 def simulate(
     subject: Annotated[

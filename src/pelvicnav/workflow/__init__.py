@@ -1,0 +1,1 @@
+"""The user's steps as library calls (each CLI command calls one of these)."""
