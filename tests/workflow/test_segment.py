@@ -41,8 +41,9 @@ def test_segment_from_a_totalsegmentator_map(patient, tmp_path):
 
     root, truth = patient
     out = tmp_path / "seg"
-    res = runner.invoke(app, ["segment", str(root / "ct.nii.gz"), "--out", str(out), "--labels",
-                              str(root / "ts.nii.gz"), "--label-scheme", "totalsegmentator"])  # fmt: skip
+    args = ["segment", str(root / "ct.nii.gz"), "--out", str(out), "--labels",
+            str(root / "ts.nii.gz"), "--label-scheme", "totalsegmentator"]  # fmt: skip
+    res = runner.invoke(app, args)
     assert res.exit_code == 0, res.output
     record = json.loads((out / "segmentation.json").read_text())
     for b, bone in enumerate(BONES):
