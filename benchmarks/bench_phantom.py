@@ -19,7 +19,7 @@ def run() -> dict:
         procedural_population(40, seed=0)
 
     pop = {"procedural_population_40_cold": measure(population, repeats=3)}
-    atlas = load_population(os.environ.get("PELVICNAV_ATLAS") or None)
+    atlas = load_population(os.environ.get("PELVICNAV_ATLAS") or None, n_subjects=1)
     V = atlas.vertices[0]
     ct = synthesize_ct(V, atlas.faces, rng=np.random.default_rng(0))
     out = pop | {

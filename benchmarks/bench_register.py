@@ -28,7 +28,7 @@ def run() -> dict:
     from pelvicnav.register import multibody as mb
     from pelvicnav.studies.registration import RegistrationStudySettings, simulate_registration_case
 
-    atlas = load_population(os.environ.get("PELVICNAV_ATLAS") or None)
+    atlas = load_population(os.environ.get("PELVICNAV_ATLAS") or None, n_subjects=1)
     case = simulate_registration_case(
         atlas.vertices[0], atlas.faces, seed=0, settings=RegistrationStudySettings()
     )
