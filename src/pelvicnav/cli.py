@@ -55,6 +55,14 @@ PopulationOption = Annotated[
     ),
 ]
 
+LabelSchemeOption = Annotated[
+    str,
+    typer.Option(
+        help="Labels of the map: 'ours' (1 sacrum, 2 left, 3 right hip), 'totalsegmentator' "
+        "(25/26, 77, 78) or 'sacrum=25,26;left_hip=77;right_hip=78'."
+    ),
+]
+
 
 def _population(location: str | None, subject_ids: tuple[int, ...] | None = None):
     """The atlas, or a generated population (see ``phantom.population.load_population``)."""
@@ -441,13 +449,7 @@ def segment(
     labels: Annotated[
         Path | None, typer.Option(help="Existing label map to fit the model to (same grid).")
     ] = None,
-    label_scheme: Annotated[
-        str,
-        typer.Option(
-            help="'ours' (1 sacrum, 2 left, 3 right hip), 'totalsegmentator' or "
-            "'sacrum=25,26;left_hip=77;right_hip=78'."
-        ),
-    ] = "ours",
+    label_scheme: LabelSchemeOption = "ours",
     model: Annotated[
         Path | None,
         typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
@@ -565,13 +567,7 @@ def register(
     overlay: Annotated[
         Path | None, typer.Option(help="Folder for overlay PNGs (one per view).")
     ] = None,
-    label_scheme: Annotated[
-        str,
-        typer.Option(
-            help="Labels of the map: 'ours' (1 sacrum, 2 left, 3 right hip), 'totalsegmentator' "
-            "(25/26, 77, 78) or 'sacrum=25,26;left_hip=77;right_hip=78'."
-        ),
-    ] = "ours",
+    label_scheme: LabelSchemeOption = "ours",
 ) -> None:
     """Register the three bones of a CT to radiographs (two-stage multi-body 3D-2D)."""
     import json

@@ -4,9 +4,13 @@ ever sees a half-written output."""
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["save_figure", "write_text"]
+__all__ = ["atomic_directory", "save_figure", "write_text"]
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
@@ -30,3 +34,22 @@ def save_figure(fig, path: str | os.PathLike, *, dpi: int = 100) -> Path:
         plt.close(fig)
     os.replace(tmp, path)
     return path
+
+
+@contextmanager
+def atomic_directory(out: str | os.PathLike) -> Iterator[Path]:
+    """Write a folder's files into a temporary sibling, moved into ``out`` only on success.
+
+    ``with atomic_directory(out) as tmp: ...`` - files written under ``tmp`` appear in ``out``
+    (created if needed) when the block ends without an exception; otherwise nothing appears.
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
+    try:
+        yield tmp
+        out.mkdir(parents=True, exist_ok=True)
+        for item in tmp.iterdir():
+            os.replace(item, out / item.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -15,10 +15,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from dataclasses import asdict
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -52,6 +49,7 @@ def simulate_case(
         written then.
     """
     from pelvicnav.geometry import transforms as tf
+    from pelvicnav.io.atomic import atomic_directory
     from pelvicnav.io.nifti import write_nifti
     from pelvicnav.io.views import View, write_views
     from pelvicnav.io.vtk_legacy import write_polydata
@@ -123,10 +121,7 @@ def simulate_case(
         "note": "CT and label map are the dislocated patient; world_from_ct maps each bone of the "
         "preoperative (undislocated) CT frame to this patient's frame.",
     }
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
-    try:
+    with atomic_directory(out) as tmp:
         hu_int16 = np.clip(np.round(moved_ct.hu.data), -32768, 32767).astype(np.int16)
         write_nifti(tmp / "ct.nii.gz", hu_int16, moved_ct.hu.world_from_ijk)
         write_nifti(tmp / "labels.nii.gz", moved_ct.labels, moved_ct.hu.world_from_ijk)
@@ -138,10 +133,5 @@ def simulate_case(
                 tmp / "meshes" / f"{bone}.vtk", moved[b], faces[b], binary=True, title=title
             )
         (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
-        out.mkdir(parents=True, exist_ok=True)
-        for f in tmp.iterdir():
-            os.replace(f, out / f.name)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     truth["moved_vertices"] = moved
     return truth

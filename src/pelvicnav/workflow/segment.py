@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -102,12 +100,11 @@ def _dice(a, b) -> float:
 def _write(out: Path, hu, ours, fitted, world_from_ijk, model, fits, record) -> None:
     import meshio
 
+    from pelvicnav.io.atomic import atomic_directory
     from pelvicnav.io.nifti import write_nifti
     from pelvicnav.io.vtk_legacy import write_polydata
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
-    try:
+    with atomic_directory(out) as tmp:
         write_nifti(tmp / "labels.nii.gz", ours, world_from_ijk)
         for b, bone in enumerate(BONES):
             v, f = fits[bone].vertices, model.faces[b]
@@ -115,11 +112,6 @@ def _write(out: Path, hu, ours, fitted, world_from_ijk, model, fits, record) -> 
             meshio.write(tmp / f"{bone}.stl", meshio.Mesh(v, [("triangle", f)]), binary=True)
         _contours(hu, ours, fitted, world_from_ijk, tmp / "contours.png")
         (tmp / "segmentation.json").write_text(json.dumps(record, indent=2) + "\n")
-        out.mkdir(parents=True, exist_ok=True)
-        for item in tmp.iterdir():
-            os.replace(item, out / item.name)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _contours(hu, labels, fitted, world_from_ijk, path: Path) -> None:
