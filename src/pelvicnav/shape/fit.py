@@ -87,7 +87,7 @@ def _rms(vertices, surface, tree_surface) -> float:
     return float(np.sqrt((np.sum(d1**2) + np.sum(d2**2)) / (len(d1) + len(d2))))
 
 
-def _refine_free_form(vertices, faces, surface, tree, *, rounds: int, smooth: int):
+def _refine_free_form(vertices, faces, surface, tree, *, rounds: int, smooth: int, reach: float):
     """Closest-point displacements, smoothed over the mesh's edges, applied ``rounds`` times."""
     from pelvicnav.shape.mesh import edge_adjacency
 
@@ -95,7 +95,7 @@ def _refine_free_form(vertices, faces, surface, tree, *, rounds: int, smooth: in
     v = vertices.copy()
     for _ in range(rounds):
         d, j = tree.query(v)
-        disp = np.where((d < 5.0)[:, None], surface[j] - v, 0.0)
+        disp = np.where((d < reach)[:, None], surface[j] - v, 0.0)
         for _ in range(smooth):
             disp = 0.5 * disp + 0.5 * (ring @ disp) / degree[:, None]
         v = v + disp
@@ -110,7 +110,8 @@ def fit_labels(
     reference: ArrayLike,
     *,
     iterations: int = 25,
-    free_form_rounds: int = 4,
+    free_form_rounds: int = 16,
+    free_form_reach: float = 5.0,
 ) -> dict[str, LabelFit]:
     """Corresponded meshes of the three bones fitted to a label map (ours: 1, 2, 3).
 
@@ -125,7 +126,10 @@ def fit_labels(
     iterations : int
         Closest-point rounds of the model stage.
     free_form_rounds : int
-        Rounds of the free-form refinement (0: the model's instance only).
+        Rounds of the free-form refinement (0: the model's instance only). On the three real CTs
+        4 rounds gave Dice 0.83-0.95 and 16 rounds (with lighter smoothing) 0.87-0.97.
+    free_form_reach : float, mm
+        Surface points further than this from a vertex do not pull it.
 
     Raises
     ------
@@ -162,7 +166,8 @@ def fit_labels(
             v, weights = fit.vertices, fit.weights
         if free_form_rounds:
             v = _refine_free_form(
-                v, np.asarray(faces[b]), surface, tree, rounds=free_form_rounds, smooth=20
-            )
+                v, np.asarray(faces[b]), surface, tree, rounds=free_form_rounds, smooth=8,
+                reach=free_form_reach,
+            )  # fmt: skip
         out[bone] = LabelFit(bone=bone, vertices=v, weights=weights, rms_mm=_rms(v, surface, tree))
     return out
