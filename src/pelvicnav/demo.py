@@ -31,7 +31,7 @@ def run_demo(out: Path, *, atlas: str | os.PathLike | None = None) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from pelvicnav.phantom.population import load_population
+    from pelvicnav.phantom.population import MODEL, load_population
 
     console = Console()
     views = _views()
@@ -66,7 +66,7 @@ def run_demo(out: Path, *, atlas: str | os.PathLike | None = None) -> None:
     path = out / "atlas_projection.png"
     _projection_figure(a, views, path)
     console.print(f"wrote {path}")
-    if a.n_subjects < 10 and a.source != "model":
+    if a.n_subjects < 10 and a.source != MODEL:
         console.print(f"[yellow]planning demo skipped: {a.n_subjects} subjects is too few[/]")
         return
     _planning_demo(a, out, console)

@@ -235,7 +235,6 @@ def _read(path: Path) -> PelvisModel:
         provenance = json.loads(str(r.get("provenance", (), dtype=None)))
     except json.JSONDecodeError as err:
         raise r.fail(f"provenance is not JSON ({err})") from None
-    faces = tuple(r.get(f"faces/{bone}", (None, 3), dtype=None) for bone in BONES)
     n_vertices = r.get("ssm/sacrum/mean", (None, 3)).shape[0]
     faces = tuple(r.index(f"faces/{bone}", n_vertices, (None, 3)) for bone in BONES)
     shapes = {}
