@@ -277,25 +277,43 @@ def test_register_bad_input_writes_nothing(tmp_path):
 
 
 def test_register_a_simulated_case_end_to_end(tmp_path, monkeypatch):
-    """`pelvicnav simulate` then `pelvicnav register --plan --overlay`: every bone found."""
+    """`pelvicnav simulate --dicom` then `pelvicnav register --plan --overlay`: every bone found,
+    from NIfTI + .npy and from the DICOM CT + `views from-dicom` alike."""
     import numpy as np
+    import pydicom
 
+    from pelvicnav.geometry import projection as pj
     from pelvicnav.geometry import transforms as tf
+    from pelvicnav.io.itk_transform import read_pose_tfm
     from pelvicnav.io.nifti import read_nifti
+    from pelvicnav.io.views import read_views
 
     monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     case = tmp_path / "case"
-    res = runner.invoke(app, ["simulate", "--subject", "1", "--out", str(case), "--seed", "0"])
+    res = runner.invoke(
+        app, ["simulate", "--subject", "1", "--out", str(case), "--seed", "0", "--dicom"]
+    )
     assert res.exit_code == 0, res.output
     truth = json.loads((case / "truth.json").read_text())
+    # the same radiographs through DICOM: XA files whose tags carry the geometry
+    iso = ",".join(repr(x) for x in truth["views"]["ap"]["isocenter"])
+    xrays = [str(case / "dicom" / "xray" / f"{v}.dcm") for v in ("ap", "oblique30")]
+    res = runner.invoke(app, ["views", "from-dicom", *xrays, "--out",
+                              str(case / "dicom" / "views.json"), "--isocenter", iso])  # fmt: skip
+    assert res.exit_code == 0, res.output
     # the patient moved by M after the images were set up: P' = P M, so each bone is at M^-1
     M = tf.from_params([6.0, -5.0, 4.0], np.deg2rad([2.0, -1.0, 2.5]))
-    views = json.loads((case / "views.json").read_text())
-    for v in views["views"]:
-        v["projection_matrix"] = (np.asarray(v["projection_matrix"]) @ M).tolist()
-        v.pop("source_mm", None)
-    (case / "views.json").write_text(json.dumps(views))
+    for path in (case / "views.json", case / "dicom" / "views.json"):
+        views = json.loads(path.read_text())
+        for v in views["views"]:
+            v["projection_matrix"] = (np.asarray(v["projection_matrix"]) @ M).tolist()
+            v.pop("source_mm", None)
+        path.write_text(json.dumps(views))
+    npy, dcm = (read_views(p)[0] for p in (case / "views.json", case / "dicom" / "views.json"))
+    for a, b in zip(npy, dcm, strict=True):
+        P, Q = (pj.normalize_projection(v.projection_matrix) for v in (a, b))
+        assert np.abs(P - Q).max() <= 1e-6 * np.abs(P).max()
     plan = tmp_path / "plan.json"
     plan.write_text(
         json.dumps({"dislocated_bone": truth["dislocation"]["bone"],
@@ -322,6 +340,30 @@ def test_register_a_simulated_case_end_to_end(tmp_path, monkeypatch):
         "overlay_ap.png",
         "overlay_oblique30.png",
     ]
+    # transforms/{bone}.tfm beside result.json: ITK convention, the inverse is the pose
+    for bone in ("sacrum", "left_hip", "right_hip"):
+        np.testing.assert_allclose(read_pose_tfm(tmp_path / "transforms" / f"{bone}.tfm"),
+                                   result["poses"][bone], atol=1e-9)  # fmt: skip
+    assert (tmp_path / "transforms" / "residual.tfm").is_file()
+    # from the DICOM CT and X-rays: the same answer as from NIfTI and .npy
+    out2 = tmp_path / "dicom" / "result.json"
+    res = runner.invoke(app, [
+        "register", "--ct", str(case / "dicom" / "ct"), "--labels", str(case / "labels.nii.gz"),
+        "--views", str(case / "dicom" / "views.json"), "--plan", str(plan), "--out", str(out2),
+        "--overlay", str(tmp_path / "dicom" / "overlays"), "--overlay-dicom", "--seed", "0",
+    ])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    from_dicom = json.loads(out2.read_text())
+    for value, bone in enumerate(("sacrum", "left_hip", "right_hip"), start=1):
+        c = tf.apply(world_from_ijk, np.argwhere(labels == value).mean(axis=0)[None])
+        a, b = (tf.apply(np.asarray(r["poses"][bone]), c) for r in (result, from_dicom))
+        assert np.linalg.norm(a - b) < 0.5, (bone, np.linalg.norm(a - b))
+        assert np.linalg.norm(b - tf.apply(setup, c)) < 1.5
+    sc = pydicom.dcmread(tmp_path / "dicom" / "overlays" / "overlay_ap.dcm")
+    xa = pydicom.dcmread(xrays[0])
+    assert sc.PhotometricInterpretation == "RGB" and sc.Modality == "OT"
+    assert (sc.PatientID, sc.StudyInstanceUID) == (xa.PatientID, xa.StudyInstanceUID)
+    assert sc.SourceImageSequence[0].ReferencedSOPInstanceUID == xa.SOPInstanceUID
 
 
 def test_model_info_and_bad_model_files(tmp_path):
@@ -372,3 +414,53 @@ def test_register_refuses_a_totalsegmentator_map_passed_as_ours(tmp_path):
     assert not out.exists()
     res = runner.invoke(app, [*args, "--label-scheme", "sacrum=25;left_hip=77"])
     assert res.exit_code == 2 and "no label for right_hip" in res.output
+
+
+def test_views_from_dicom_bad_input_writes_nothing(tmp_path):
+    import numpy as np
+
+    from pelvicnav.geometry import projection as pj
+    from pelvicnav.io.xray_dicom import write_xray_dicom
+
+    carm = pj.CArm(rows=16, cols=20)
+    good = write_xray_dicom(tmp_path / "ap.dcm", np.zeros((16, 20)), carm)
+    import pydicom
+
+    ds = pydicom.dcmread(good)
+    del ds.ImagerPixelSpacing
+    ds.save_as(tmp_path / "nospacing.dcm")
+    out = tmp_path / "set" / "views.json"
+    base = ["views", "from-dicom", "--out", str(out)]
+    for args, message in (
+        ([str(good)], "give the isocentre's place"),
+        ([str(good), "--isocenter", "1,2"], "must be 3 finite numbers"),
+        ([str(good), "--isocenter", "a,b,c"], "--isocenter must be 'x,y,z'"),
+        ([str(tmp_path / "nospacing.dcm"), "--isocenter", "0,0,0"], "(0018,1164)"),
+        ([str(good), str(tmp_path / "missing.dcm"), "--isocenter", "0,0,0"], "file not found"),
+        ([str(good), "--isocenter", "0,0,0", "--dof", "7"], "6 or 9"),
+    ):
+        res = runner.invoke(app, base + args)
+        assert res.exit_code == 2, (args, res.output)
+        assert message in res.output.replace("\n", ""), res.output
+        assert not out.parent.exists()
+    res = runner.invoke(app, [*base, str(good), "--isocenter", "0,0,0"])
+    assert res.exit_code == 0, res.output
+    assert "assumed: principal point at the detector centre" in " ".join(res.output.split())
+
+
+def test_register_names_a_bad_dicom_folder(tmp_path):
+    import numpy as np
+
+    from pelvicnav.geometry import projection as pj
+    from pelvicnav.io.views import View, write_views
+
+    carm = pj.CArm(rows=8, cols=8)
+    write_views(tmp_path, [View("ap", np.zeros((8, 8)), carm.projection_matrix, (1.0, 1.0))])
+    (tmp_path / "ct").mkdir()
+    (tmp_path / "ct" / "notes.txt").write_text("no images here")
+    res = runner.invoke(app, [
+        "register", "--ct", str(tmp_path / "ct"), "--labels", str(tmp_path / "ct"),
+        "--views", str(tmp_path / "views.json"), "--out", str(tmp_path / "r.json"),
+    ])  # fmt: skip
+    assert res.exit_code == 2
+    assert "no DICOM image series" in res.output

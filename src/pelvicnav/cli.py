@@ -34,6 +34,11 @@ model_app = typer.Typer(
     no_args_is_help=True,
 )
 app.add_typer(model_app, name="model")
+views_app = typer.Typer(
+    help="View sets (views.json): radiographs with their projection geometry.",
+    no_args_is_help=True,
+)
+app.add_typer(views_app, name="views")
 
 AtlasOption = Annotated[
     Path | None,
@@ -55,6 +60,11 @@ PopulationOption = Annotated[
     ),
 ]
 
+_CT_HELP = "CT in HU: a DICOM series folder, NIfTI, NRRD or MHA."
+SeriesOption = Annotated[
+    str | None,
+    typer.Option(help="Series Instance UID, when the CT's DICOM folder holds several series."),
+]
 LabelSchemeOption = Annotated[
     str,
     typer.Option(
@@ -444,7 +454,7 @@ def model_info(
 
 @app.command("segment")
 def segment(
-    ct: Annotated[Path, typer.Argument(help="CT (NIfTI, HU).")],
+    ct: Annotated[Path, typer.Argument(help=_CT_HELP)],
     out: Annotated[Path, typer.Option(help="Output folder.")],
     labels: Annotated[
         Path | None, typer.Option(help="Existing label map to fit the model to (same grid).")
@@ -454,6 +464,7 @@ def segment(
         Path | None,
         typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
     ] = None,
+    series: SeriesOption = None,
 ) -> None:
     """Bones of a CT as corresponded meshes (VTK, STL) and a label map, with contours."""
     from rich.console import Console
@@ -465,7 +476,12 @@ def segment(
     try:
         with console.status(f"fitting the pelvis model to {labels}"):
             record = run_segment(
-                ct, out, labels=labels, label_scheme=label_scheme, model=load_model(model)
+                ct,
+                out,
+                labels=labels,
+                label_scheme=label_scheme,
+                model=load_model(model),
+                series=series,
             )
     except (FileNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
@@ -475,6 +491,64 @@ def segment(
             f"RMS {r['rms_mm']:.2f} mm"
         )
     console.print(f"wrote {out} ({record['seconds']['fit']:.1f} s fitting)")
+
+
+@views_app.command("from-dicom")
+def views_from_dicom(
+    files: Annotated[
+        list[Path], typer.Argument(help="X-ray DICOM files (XA, RF, DX, CR), or PNG/TIFF + JSON.")
+    ],
+    out: Annotated[Path, typer.Option(help="views.json to write (images beside it).")],
+    profile: Annotated[
+        Path | None, typer.Option(help="C-arm profile (JSON) for geometry the tags lack.")
+    ] = None,
+    isocenter: Annotated[
+        str | None,
+        typer.Option(help="The C-arm isocentre in the CT's world, 'x,y,z' mm (LPS)."),
+    ] = None,
+    ct: Annotated[
+        Path | None,
+        typer.Option(help="Place the isocentre at the centroid of this CT's bone instead."),
+    ] = None,
+    intensities: Annotated[
+        str, typer.Option(help="'auto' (to line integrals) or 'keep' (display values as they are).")
+    ] = "auto",
+    dof: Annotated[int, typer.Option(help="Degrees of freedom the view set asks for: 6 or 9.")] = 6,
+) -> None:
+    """Turn C-arm images and their DICOM geometry into a view set for `pelvicnav register`."""
+    from rich.console import Console
+
+    from pelvicnav.io.xray_dicom import bone_centroid, convert_views, read_profile
+
+    console = Console()
+    try:
+        if (isocenter is None) == (ct is None):
+            raise ValueError(
+                "give the isocentre's place in the CT's world: --isocenter x,y,z (mm) or --ct CT "
+                "(the centroid of its bone); DICOM X-ray tags do not say where the patient lies"
+            )
+        if ct is not None:
+            iso = bone_centroid(ct)
+        else:
+            try:
+                iso = [float(x) for x in isocenter.split(",")]
+            except ValueError:
+                raise ValueError(f"--isocenter must be 'x,y,z' in mm, got {isocenter!r}") from None
+        views = convert_views(
+            files, out, isocenter=iso, profile=read_profile(profile) if profile else None,
+            intensities=intensities, degrees_of_freedom=dof,
+        )  # fmt: skip
+    except ValueError as err:
+        raise _fail(str(err)) from None
+    for v in views:
+        m = v.meta
+        console.print(
+            f"{v.name}: {v.image.shape[0]} x {v.image.shape[1]}, primary "
+            f"{m['primary_angle_deg']:g} secondary {m['secondary_angle_deg']:g} deg, SDD "
+            f"{m['source_to_detector_mm']:g} SID {m['source_to_isocenter_mm']:g} mm"
+            + (f"; assumed: {', '.join(m['assumed'])}" if m["assumed"] else "")
+        )
+    console.print(f"wrote {out} ({len(views)} views, {dof} DoF)")
 
 
 @app.command("simulate")
@@ -499,6 +573,13 @@ def simulate(
     ] = "ap,oblique30",
     seed: Annotated[int, typer.Option(help="Seed of everything random in the case.")] = 0,
     beads: Annotated[int, typer.Option(help="Metal fiducial beads on the bones (for TRE).")] = 0,
+    dicom: Annotated[
+        bool,
+        typer.Option(
+            help="Also write dicom/ct/ (the CT as a DICOM series) and dicom/xray/ (XA images "
+            "with their geometry tags)."
+        ),
+    ] = False,
 ) -> None:
     """Simulate a dislocated patient: CT, label map, radiographs and ground truth."""
     from rich.console import Console
@@ -515,7 +596,7 @@ def simulate(
             truth = simulate_case(
                 vertices, a.faces, out, subject_id=subject, pattern=pattern, bone=bone,
                 dose_ugy=dose, views=tuple(v.strip() for v in views.split(",") if v.strip()),
-                seed=seed, ct_options=CTOptions(beads=beads),
+                seed=seed, ct_options=CTOptions(beads=beads), dicom=dicom,
             )  # fmt: skip
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
@@ -551,8 +632,10 @@ def _read_plan(path: Path) -> dict:
 
 @app.command("register")
 def register(
-    ct: Annotated[Path, typer.Option(help="Preoperative CT (NIfTI, HU).")],
-    labels: Annotated[Path, typer.Option(help="Label map (1 sacrum, 2 left, 3 right hip).")],
+    ct: Annotated[Path, typer.Option(help=_CT_HELP)],
+    labels: Annotated[
+        Path, typer.Option(help="Label map on the CT's grid (any format --ct takes).")
+    ],
     views: Annotated[Path, typer.Option(help="views.json with the radiographs.")],
     out: Annotated[Path, typer.Option(help="result.json to write.")],
     plan: Annotated[
@@ -568,8 +651,20 @@ def register(
         Path | None, typer.Option(help="Folder for overlay PNGs (one per view).")
     ] = None,
     label_scheme: LabelSchemeOption = "ours",
+    series: SeriesOption = None,
+    overlay_dicom: Annotated[
+        bool,
+        typer.Option(
+            help="With --overlay, also write each overlay as a DICOM Secondary Capture carrying "
+            "the radiograph's patient and study identifiers."
+        ),
+    ] = False,
 ) -> None:
-    """Register the three bones of a CT to radiographs (two-stage multi-body 3D-2D)."""
+    """Register the three bones of a CT to radiographs (two-stage multi-body 3D-2D).
+
+    Writes OUT (result.json) and, beside it, transforms/{bone}.tfm (ITK, LPS; with --plan also
+    transforms/residual.tfm) for 3D Slicer and ITK; see docs/slicer.md.
+    """
     import json
 
     import numpy as np
@@ -577,9 +672,11 @@ def register(
     from rich.progress import Progress
 
     from pelvicnav.drr.volume import Volume
+    from pelvicnav.guide.overlay import write_view_overlays
     from pelvicnav.io.atomic import write_text
-    from pelvicnav.io.nifti import read_nifti
+    from pelvicnav.io.itk_transform import write_pose_transforms
     from pelvicnav.io.views import read_views
+    from pelvicnav.io.volume import read_ct, read_volume
     from pelvicnav.register.multibody import (
         RegistrationSettings,
         RegistrationViews,
@@ -594,8 +691,8 @@ def register(
             raise ValueError(f"--dof must be 6 or 9, got {dof}")
         the_plan = _read_plan(plan) if plan is not None else None
         vs, _ = read_views(views)
-        data, affine = read_nifti(ct)
-        lab, lab_affine = read_nifti(labels)
+        data, affine = read_ct(ct, series=series)
+        lab, lab_affine = read_volume(labels)
         if lab.shape != data.shape or not np.allclose(lab_affine, affine, atol=1e-4):
             raise ValueError(
                 f"{labels}: label map grid {lab.shape} does not match the CT's {data.shape}"
@@ -638,7 +735,9 @@ def register(
         if the_plan is not None:
             record["residual"] = _residual(result, the_plan, volume, lab)
         if overlay is not None:
-            _overlays(overlay, models[-1], vs, result, the_plan)
+            write_view_overlays(overlay, models[-1], vs, result, the_plan, dicom=overlay_dicom)
+        residual = record.get("residual", {}).get("world_transform")
+        write_pose_transforms(out.parent / "transforms", result.poses, residual=residual)
         write_text(out, json.dumps(record, indent=2) + "\n")
     except ValueError as err:
         raise _fail(str(err)) from None
@@ -672,23 +771,6 @@ def _residual(result, plan: dict, volume, labels) -> dict:
         "angle_deg": res.angle_deg,
         "description": res.describe(),
     }
-
-
-def _overlays(folder: Path, models: dict, views, result, plan) -> None:
-    """One PNG per view; ``models`` are the finest registration level's bone models."""
-    from pelvicnav.guide.overlay import bone_edges, write_overlay
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for k, view in enumerate(views):
-        P = result.projections[k] if len(result.projections) > k else view.projection_matrix
-        shape = view.image.shape
-        edges = {b: bone_edges(models[b], result.poses[b], P, shape) for b in models}
-        target = None
-        if plan is not None:
-            T = result.poses[plan["reference_bone"]] @ plan["target_from_current"]
-            target = bone_edges(models[plan["dislocated_bone"]], T, P, shape)
-        write_overlay(folder / f"overlay_{view.name}.png", view.image, edges, target=target,
-                      title=f"{view.name}: registered (yellow), target (green)")  # fmt: skip
 
 
 @app.command("demo")

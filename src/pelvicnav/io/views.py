@@ -75,9 +75,14 @@ class View:
 
 
 def write_views(
-    directory: str | os.PathLike, views: list[View], *, degrees_of_freedom: int = 6
+    directory: str | os.PathLike,
+    views: list[View],
+    *,
+    degrees_of_freedom: int = 6,
+    filename: str = "views.json",
 ) -> Path:
-    """Write ``views.json`` and one ``<name>.npy`` per view into ``directory``; returns the JSON."""
+    """Write ``filename`` (``views.json``) and one ``<name>.npy`` per view into ``directory``;
+    returns the JSON's path."""
     if degrees_of_freedom not in (6, 9):
         raise ValueError(f"degrees_of_freedom must be 6 or 9, got {degrees_of_freedom}")
     names = [v.name for v in views]
@@ -104,8 +109,8 @@ def write_views(
                 **v.meta,
             }
         )
-    path = d / "views.json"
-    tmp = d / "views.json.part"
+    path = d / filename
+    tmp = d / (filename + ".part")
     tmp.write_text(
         json.dumps({"views": entries, "degrees_of_freedom": degrees_of_freedom}, indent=2) + "\n"
     )

@@ -5,8 +5,12 @@ and moved into place only when everything succeeded):
 
 * ``ct.nii.gz`` - the dislocated CT (HU), ``labels.nii.gz`` - its label map (1, 2, 3);
 * ``views.json`` + ``<view>.npy`` - radiographs (line integrals) and projection matrices;
-* ``meshes/{sacrum,left_hip,right_hip}.vtk`` - the ground-truth bone surfaces as they lie in
-  ``ct.nii.gz`` (the dislocated bone moved), LPS mm, in the population's vertex order;
+* ``meshes/{sacrum,left_hip,right_hip}.{vtk,stl,ply}`` - the ground-truth bone surfaces as they
+  lie in ``ct.nii.gz`` (the dislocated bone moved), LPS mm, in the population's vertex order;
+* ``landmarks.mrk.json`` - femoral head centres and fiducial beads (3D Slicer Markups, LPS);
+* with ``dicom=True``, ``dicom/ct/`` (the CT as a DICOM series) and ``dicom/xray/<view>.dcm``
+  (each radiograph as a DICOM XA image whose tags carry its C-arm geometry; the isocentre, which
+  DICOM cannot hold, is in ``truth.json``);
 * ``truth.json`` - per-bone ``world_from_ct`` poses (the dislocated bone's is the dislocation),
   the dislocation, the femoral heads and the C-arm parameters of every view.
 """
@@ -39,6 +43,7 @@ def simulate_case(
     max_mm: float = 20.0,
     max_deg: float = 10.0,
     ct_options=None,
+    dicom: bool = False,
 ) -> dict:
     """Simulate a dislocated patient and its radiographs; returns the truth record.
 
@@ -50,9 +55,10 @@ def simulate_case(
     """
     from pelvicnav.geometry import transforms as tf
     from pelvicnav.io.atomic import atomic_directory
+    from pelvicnav.io.markups import write_markups
+    from pelvicnav.io.mesh_files import write_meshes
     from pelvicnav.io.nifti import write_nifti
     from pelvicnav.io.views import View, write_views
-    from pelvicnav.io.vtk_legacy import write_polydata
     from pelvicnav.phantom.ctsynth import synthesize_ct
     from pelvicnav.phantom.dislocate import apply_dislocation, draw_dislocation
     from pelvicnav.phantom.xray import (
@@ -128,10 +134,33 @@ def simulate_case(
         write_views(tmp, radiographs, degrees_of_freedom=6)
         (tmp / "meshes").mkdir()
         for b, bone in enumerate(BONES):
-            title = f"pelvicnav simulate subject {subject_id} {bone} (LPS mm, CT frame)"
-            write_polydata(
-                tmp / "meshes" / f"{bone}.vtk", moved[b], faces[b], binary=True, title=title
-            )
+            title = f"pelvicnav simulate subject {subject_id} {bone} (CT frame)"
+            write_meshes(tmp / "meshes", bone, moved[b], faces[b], title=title)
+        write_markups(tmp / "landmarks.mrk.json", _landmarks(ct, moved_ct), name="landmarks")
+        if dicom:
+            _write_dicom(tmp / "dicom", hu_int16, moved_ct.hu.world_from_ijk, radiographs, carms,
+                         subject_id, dose_ugy)  # fmt: skip
         (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
     truth["moved_vertices"] = moved
     return truth
+
+
+def _landmarks(ct, moved_ct) -> dict:
+    heads = np.asarray(ct.femoral_heads)[:, :3]
+    points = {"femoral_head_left": heads[0], "femoral_head_right": heads[1]}
+    for n, p in enumerate(np.asarray(moved_ct.beads).reshape(-1, 3), start=1):
+        points[f"bead_{n}_{BONES[int(ct.bead_bones[n - 1]) - 1]}"] = p
+    return points
+
+
+def _write_dicom(folder, hu, world_from_ijk, radiographs, carms, subject_id, dose_ugy) -> None:
+    from pelvicnav.io.dicom_base import DicomIdentity
+    from pelvicnav.io.dicom_ct import write_ct_series
+    from pelvicnav.io.xray_dicom import write_xray_dicom
+
+    identity = DicomIdentity(patient_id=f"PELVICNAV-{subject_id}").filled()
+    write_ct_series(folder / "ct", hu, world_from_ijk, identity=identity)
+    (folder / "xray").mkdir()
+    for view in radiographs:
+        write_xray_dicom(folder / "xray" / f"{view.name}.dcm", view.image, carms[view.name],
+                         identity=identity, description=view.name, dose_ugy=dose_ugy)  # fmt: skip

@@ -5,7 +5,7 @@ With a label map (ours, TotalSegmentator's or a mapping), the pelvis model is fi
 not there yet; asking for it is an error that says so.
 
 Outputs in ``out`` (written to a temporary sibling folder and moved into place only when all of
-them succeeded): ``labels.nii.gz`` (ours, on the CT's grid), ``{bone}.vtk`` and ``{bone}.stl``
+them succeeded): ``labels.nii.gz`` (ours, on the CT's grid), ``{bone}.vtk``, ``.stl`` and ``.ply``
 (LPS mm, the model's vertex order), ``segmentation.json`` (fit quality, timings, model
 provenance) and ``contours.png`` (axial, coronal and sagittal slices through each bone).
 """
@@ -31,8 +31,12 @@ def segment(
     labels: str | os.PathLike | None = None,
     label_scheme: str = "ours",
     model=None,
+    series: str | None = None,
 ) -> dict:
     """Segment (fit) the three bones of a CT and write them to ``out``; returns the record.
+
+    ``ct`` and ``labels`` are any volume :func:`pelvicnav.io.volume.read_volume` reads (a DICOM
+    series folder, ``series`` choosing among several, NIfTI, NRRD, MetaImage).
 
     Raises
     ------
@@ -42,7 +46,7 @@ def segment(
         :func:`pelvicnav.shape.labels.check_bone_labels`); nothing is written then.
     """
     from pelvicnav.geometry import transforms as tf
-    from pelvicnav.io.nifti import read_nifti
+    from pelvicnav.io.volume import read_ct, read_volume
     from pelvicnav.model import load_model
     from pelvicnav.phantom.ctsynth import bone_labels
     from pelvicnav.shape.fit import fit_labels
@@ -55,8 +59,8 @@ def segment(
         )
     started = time.perf_counter()
     scheme = parse_scheme(label_scheme)
-    hu, world_from_ijk = read_nifti(ct)
-    raw, lab_affine = read_nifti(labels)
+    hu, world_from_ijk = read_ct(ct, series=series)
+    raw, lab_affine = read_volume(labels)
     if raw.shape != hu.shape or not np.allclose(lab_affine, world_from_ijk, atol=1e-4):
         raise ValueError(
             f"{labels}: label map grid {raw.shape} does not match the CT's {hu.shape} "
@@ -98,18 +102,14 @@ def _dice(a, b) -> float:
 
 
 def _write(out: Path, hu, ours, fitted, world_from_ijk, model, fits, record) -> None:
-    import meshio
-
     from pelvicnav.io.atomic import atomic_directory
+    from pelvicnav.io.mesh_files import write_meshes
     from pelvicnav.io.nifti import write_nifti
-    from pelvicnav.io.vtk_legacy import write_polydata
 
     with atomic_directory(out) as tmp:
         write_nifti(tmp / "labels.nii.gz", ours, world_from_ijk)
         for b, bone in enumerate(BONES):
-            v, f = fits[bone].vertices, model.faces[b]
-            write_polydata(tmp / f"{bone}.vtk", v, f, binary=True, title=f"pelvicnav {bone}")
-            meshio.write(tmp / f"{bone}.stl", meshio.Mesh(v, [("triangle", f)]), binary=True)
+            write_meshes(tmp, bone, fits[bone].vertices, model.faces[b], title=f"pelvicnav {bone}")
         _contours(hu, ours, fitted, world_from_ijk, tmp / "contours.png")
         (tmp / "segmentation.json").write_text(json.dumps(record, indent=2) + "\n")
 

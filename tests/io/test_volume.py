@@ -1,0 +1,209 @@
+"""One volume reader: DICOM series (written here with pydicom), NIfTI, NRRD, MHA; clear refusals."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pydicom
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pelvicnav.geometry import transforms as tf
+from pelvicnav.io.dicom_ct import write_ct_series
+from pelvicnav.io.volume import (
+    VolumeFileError,
+    check_ct_hu,
+    read_ct,
+    read_volume,
+    write_volume,
+)
+
+
+def _affine(angles_deg, spacing, origin, flips=(1, 1, 1)):
+    R = Rotation.from_euler("xyz", angles_deg, degrees=True).as_matrix() * np.asarray(flips)
+    A = np.eye(4)
+    A[:3, :3] = R * np.asarray(spacing)
+    A[:3, 3] = origin
+    return A
+
+
+def _ct(rng, shape=(9, 7, 5)):
+    return rng.integers(-1024, 2500, shape).astype(np.int16)
+
+
+@pytest.mark.parametrize(
+    ("angles", "flips"),
+    [
+        ((0, 0, 0), (1, 1, 1)),  # axial, the usual
+        ((10, -20, 35), (1, 1, 1)),  # oblique
+        ((0, 0, 0), (-1, -1, 1)),  # i towards the right, j anterior (a RAS-stored volume)
+        ((5, 80, -30), (-1, 1, -1)),  # oblique and flipped
+    ],
+)
+def test_dicom_series_round_trip(tmp_path, angles, flips):
+    rng = np.random.default_rng(0)
+    data = _ct(rng)
+    A = _affine(angles, (0.7, 0.9, 2.5), (-100.123456789, 50.5, -1200.25), flips)
+    write_ct_series(tmp_path / "ct", data, A)
+    back, A2 = read_volume(tmp_path / "ct")
+    assert back.dtype == np.int16
+    np.testing.assert_array_equal(back, data)
+    np.testing.assert_allclose(A2, A, atol=1e-6)
+    # One file of the series reads the whole series.
+    back1, A3 = read_volume(sorted((tmp_path / "ct").iterdir())[2])
+    np.testing.assert_array_equal(back1, data)
+    np.testing.assert_allclose(A3, A, atol=1e-6)
+
+
+def test_dicom_slice_axis_against_the_normal_reads_back_as_the_same_voxels(tmp_path):
+    rng = np.random.default_rng(1)
+    data = _ct(rng)
+    A = _affine((3, -4, 20), (0.8, 0.8, 2.0), (10.0, -20.0, 30.0), (1, 1, -1))  # det < 0
+    write_ct_series(tmp_path / "ct", data, A)
+    back, A2 = read_volume(tmp_path / "ct")
+    assert np.linalg.det(A2[:3, :3]) > 0
+    # Same voxels at the same world positions: index k of the file is nk - 1 - k of ours.
+    np.testing.assert_array_equal(back, data[:, :, ::-1])
+    ijk = np.argwhere(np.ones(data.shape, bool))
+    ours = ijk.copy()
+    ours[:, 2] = data.shape[2] - 1 - ours[:, 2]
+    np.testing.assert_allclose(tf.apply(A2, ijk), tf.apply(A, ours), atol=1e-6)
+
+
+@pytest.mark.parametrize("suffix", [".nrrd", ".mha", ".nii.gz"])
+def test_other_formats_round_trip(tmp_path, suffix):
+    rng = np.random.default_rng(2)
+    data = _ct(rng)
+    A = _affine((10, 0, -15), (0.6, 0.6, 1.25), (1.5, -2.5, 3.5), (-1, 1, 1))
+    path = write_volume(tmp_path / f"ct{suffix}", data, A)
+    back, A2 = read_volume(path)
+    np.testing.assert_array_equal(back, data)
+    np.testing.assert_allclose(A2, A, atol=1e-5 if suffix == ".nii.gz" else 1e-9)
+    assert not list(tmp_path.glob("*.part*"))
+
+
+def _two_series(folder, rng, sizes):
+    A = _affine((0, 0, 0), (1, 1, 2), (0, 0, 0))
+    uids = []
+    for n, k in enumerate(sizes):
+        files = write_ct_series(folder / f"s{n}", _ct(rng, (6, 6, k)), A)
+        for f in files:
+            f.rename(folder / f"s{n}_{f.name}")
+        (folder / f"s{n}").rmdir()
+        uids.append(str(pydicom.dcmread(folder / f"s{n}_{files[0].name}").SeriesInstanceUID))
+    return uids
+
+
+def test_largest_series_is_read_and_a_tie_is_refused(tmp_path):
+    rng = np.random.default_rng(4)
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    uids = _two_series(mixed, rng, (8, 2))
+    (mixed / "README.txt").write_text("not DICOM")
+    with pytest.warns(UserWarning, match="several series; reading the largest"):
+        data, _ = read_volume(mixed)
+    assert data.shape == (6, 6, 8)
+    data, _ = read_volume(mixed, series=uids[1])
+    assert data.shape == (6, 6, 2)
+    with pytest.raises(VolumeFileError, match="no series 1.2.3"):
+        read_volume(mixed, series="1.2.3")
+    tie = tmp_path / "tie"
+    tie.mkdir()
+    _two_series(tie, rng, (4, 4))
+    with pytest.raises(VolumeFileError, match=r"several image series of the same size.*--series"):
+        read_volume(tie)
+
+
+def test_dicom_refusals_name_the_folder(tmp_path):
+    rng = np.random.default_rng(5)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("hello")
+    with pytest.raises(VolumeFileError, match=r"empty: no DICOM image series"):
+        read_volume(empty)
+    A = _affine((0, 0, 0), (1, 1, 2), (0, 0, 0))
+    one = tmp_path / "one"
+    write_ct_series(one, _ct(rng, (6, 6, 1)), A)
+    with pytest.raises(VolumeFileError, match="a single slice is not a 3D volume"):
+        read_volume(one)
+    tilted = tmp_path / "tilted"
+    files = write_ct_series(tilted, _ct(rng, (6, 6, 5)), A)
+    for k, f in enumerate(files):  # gantry tilt: each slice shifted along y
+        ds = pydicom.dcmread(f)
+        x, y, z = (float(v) for v in ds.ImagePositionPatient)
+        ds.ImagePositionPatient = [x, y + 0.35 * k * 2, z]
+        ds.save_as(f)
+    with pytest.raises(VolumeFileError, match=r"tilted.*gantry tilt"):
+        read_volume(tilted)
+    dup = tmp_path / "dup"
+    files = write_ct_series(dup, _ct(rng, (6, 6, 3)), A)
+    ds = pydicom.dcmread(files[1])
+    ds.ImagePositionPatient = pydicom.dcmread(files[0]).ImagePositionPatient
+    ds.save_as(files[1])
+    with pytest.raises(VolumeFileError, match="same position"):
+        read_volume(dup)
+    with pytest.raises(VolumeFileError, match="not found"):
+        read_volume(tmp_path / "missing.nii.gz")
+    (tmp_path / "x.vol").write_text("?")
+    with pytest.raises(VolumeFileError, match="unknown volume format"):
+        read_volume(tmp_path / "x.vol")
+    (tmp_path / "broken.nrrd").write_text("NRRD0004\nbroken")
+    with pytest.raises(VolumeFileError, match=r"broken\.nrrd: not a readable"):
+        read_volume(tmp_path / "broken.nrrd")
+
+
+def test_uneven_slices_are_resampled_with_a_warning(tmp_path):
+    k = np.arange(6, dtype=np.float64)
+    data = np.broadcast_to(k * 100, (4, 4, 6)).astype(np.int16)  # value = 100 * slice
+    A = _affine((0, 0, 0), (1, 1, 2), (0, 0, 0))
+    files = write_ct_series(tmp_path / "ct", data, A)
+    files[3].unlink()  # a missing slice
+    with pytest.warns(UserWarning, match="uneven slice spacing"):
+        back, A2 = read_volume(tmp_path / "ct")
+    assert back.shape == (4, 4, 6)
+    np.testing.assert_allclose(back[0, 0], k * 100, atol=1e-3)  # slice 3 interpolated
+    np.testing.assert_allclose(A2, A, atol=1e-6)
+
+
+def test_not_3d_is_refused(tmp_path):
+    import nibabel as nib
+    import SimpleITK as sitk
+
+    nib.save(nib.Nifti1Image(np.zeros((4, 5), np.int16), np.eye(4)), tmp_path / "flat.nii.gz")
+    with pytest.raises(VolumeFileError, match="expected a 3D volume"):
+        read_volume(tmp_path / "flat.nii.gz")
+    sitk.WriteImage(sitk.Image(4, 5, sitk.sitkInt16), str(tmp_path / "flat.mha"))
+    with pytest.raises(VolumeFileError, match=r"flat\.mha: expected a scalar 3D volume"):
+        read_volume(tmp_path / "flat.mha")
+
+
+def test_ct_hu_checks():
+    rng = np.random.default_rng(6)
+    body = rng.normal(40, 20, (20, 20, 20))
+    body[:3] = -1000
+    body[8:12, 8:12, 8:12] = 700
+    check_ct_hu(body)  # a CT
+    check_ct_hu(np.where(body > 200, body, 0))  # masked to a constant
+    check_ct_hu(np.where(np.arange(20)[:, None, None] < 2, -3024, body))  # padding
+    with pytest.raises(VolumeFileError, match="no bone"):
+        check_ct_hu(np.clip(body, -1000, 100), source="soft.nii.gz")
+    with pytest.raises(VolumeFileError, match="without the rescale"):
+        check_ct_hu(body + 1024, source="raw.nii.gz")
+    with pytest.raises(VolumeFileError, match="not Hounsfield units"):
+        check_ct_hu(body * 100)
+
+
+def test_read_ct_checks_hu(tmp_path):
+    A = _affine((0, 0, 0), (1, 1, 1), (0, 0, 0))
+    write_volume(tmp_path / "water.nrrd", np.zeros((5, 5, 5), np.int16), A)
+    with pytest.raises(VolumeFileError, match=r"water\.nrrd: no bone"):
+        read_ct(tmp_path / "water.nrrd")
+
+
+def test_no_warning_for_a_clean_series(tmp_path):
+    rng = np.random.default_rng(7)
+    write_ct_series(tmp_path / "ct", _ct(rng), _affine((0, 0, 0), (1, 1, 2), (0, 0, 0)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_volume(tmp_path / "ct")
