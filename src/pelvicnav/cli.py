@@ -676,7 +676,7 @@ def register(
     from pelvicnav.io.atomic import write_text
     from pelvicnav.io.itk_transform import write_pose_transforms
     from pelvicnav.io.views import read_views
-    from pelvicnav.io.volume import read_ct, read_volume
+    from pelvicnav.io.volume import read_ct, read_labels
     from pelvicnav.register.multibody import (
         RegistrationSettings,
         RegistrationViews,
@@ -692,11 +692,7 @@ def register(
         the_plan = _read_plan(plan) if plan is not None else None
         vs, _ = read_views(views)
         data, affine = read_ct(ct, series=series)
-        lab, lab_affine = read_volume(labels)
-        if lab.shape != data.shape or not np.allclose(lab_affine, affine, atol=1e-4):
-            raise ValueError(
-                f"{labels}: label map grid {lab.shape} does not match the CT's {data.shape}"
-            )
+        lab = read_labels(labels, data.shape, affine)
         raw_labels = lab
         lab = to_bone_labels(lab, parse_scheme(label_scheme))
         check_bone_labels(data, lab, affine, source=str(labels), raw_labels=raw_labels)

@@ -207,3 +207,67 @@ def test_no_warning_for_a_clean_series(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         read_volume(tmp_path / "ct")
+
+
+def test_an_independently_written_series_with_rescale_and_shuffled_files(tmp_path):
+    """Slices written here with pydicom alone: unsigned stored values, Rescale Intercept -1024,
+    a coronal orientation, file names in no particular order."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    rng = np.random.default_rng(8)
+    hu = rng.integers(-1024, 2000, (6, 5, 7)).astype(np.int16)
+    row_dir, col_dir = np.array([1.0, 0, 0]), np.array([0, 0, -1.0])  # coronal slices
+    normal = np.cross(row_dir, col_dir)  # (0, 1, 0): posterior
+    origin, (dr, dc, dz) = np.array([-50.0, -80.0, 120.0]), (0.75, 0.6, 1.5)
+    series, study = generate_uid(), generate_uid()
+    for k in rng.permutation(hu.shape[2]):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.2"
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = Dataset()
+        ds.file_meta = meta
+        ds.SOPClassUID, ds.SOPInstanceUID = meta.MediaStorageSOPClassUID, generate_uid()
+        ds.Modality, ds.SeriesInstanceUID, ds.StudyInstanceUID = "CT", series, study
+        ds.ImagePositionPatient = [f"{x:.6f}" for x in origin + k * dz * normal]
+        ds.ImageOrientationPatient = [f"{x:g}" for x in (*row_dir, *col_dir)]
+        ds.PixelSpacing = [f"{dr:g}", f"{dc:g}"]
+        ds.Rows, ds.Columns = hu.shape[1], hu.shape[0]
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+        ds.RescaleIntercept, ds.RescaleSlope = "-1024", "1"
+        ds.PixelData = np.ascontiguousarray((hu[:, :, k].T + 1024).astype(np.uint16)).tobytes()
+        ds.save_as(tmp_path / f"IM{rng.integers(1e6):06d}", enforce_file_format=True)
+    data, A = read_volume(tmp_path)
+    np.testing.assert_array_equal(data, hu)
+    expected = np.eye(4)
+    expected[:3, 0], expected[:3, 1], expected[:3, 2] = row_dir * dc, col_dir * dr, normal * dz
+    expected[:3, 3] = origin
+    np.testing.assert_allclose(A, expected, atol=1e-6)
+
+
+def test_labels_stored_with_other_axes_are_put_on_the_cts_grid(tmp_path):
+    from pelvicnav.io.volume import read_labels
+
+    rng = np.random.default_rng(9)
+    labels = rng.integers(0, 4, (6, 5, 4)).astype(np.uint8)
+    A = _affine((0, 0, 0), (0.8, 0.8, 2.0), (-10.0, 20.0, 30.0))
+    # the same grid, stored RAS-wise with i and j reversed and the axes permuted
+    flipped = labels[::-1, ::-1, :].transpose(2, 0, 1)
+    B = np.eye(4)
+    B[:3, 0] = A[:3, 2]  # stored axis 0 = our k
+    B[:3, 1] = -A[:3, 0]  # stored axis 1 = our i reversed
+    B[:3, 2] = -A[:3, 1]  # stored axis 2 = our j reversed
+    B[:3, 3] = A[:3, 3] + 5 * A[:3, 0] + 4 * A[:3, 1]
+    write_volume(tmp_path / "ts.nii.gz", flipped, B)
+    np.testing.assert_array_equal(read_labels(tmp_path / "ts.nii.gz", labels.shape, A), labels)
+    write_volume(tmp_path / "same.nrrd", labels, A)
+    np.testing.assert_array_equal(read_labels(tmp_path / "same.nrrd", labels.shape, A), labels)
+    shifted = A.copy()
+    shifted[:3, 3] += 0.4  # a fraction of a voxel off: another grid
+    write_volume(tmp_path / "off.nrrd", labels, shifted)
+    with pytest.raises(VolumeFileError, match=r"off\.nrrd: label map grid .* does not match"):
+        read_labels(tmp_path / "off.nrrd", labels.shape, A)
+    with pytest.raises(VolumeFileError, match="does not match"):
+        read_labels(tmp_path / "same.nrrd", (6, 5, 5), A)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +32,7 @@ __all__ = [
     "check_ct_hu",
     "dicom_series_in",
     "read_ct",
+    "read_labels",
     "read_volume",
     "write_volume",
 ]
@@ -64,6 +65,7 @@ class DicomSeries:
     uid: str
     files: tuple[Path, ...]
     description: str
+    headers: tuple = field(default=(), repr=False, compare=False)
 
 
 def read_volume(
@@ -146,6 +148,51 @@ def check_ct_hu(data: ArrayLike, *, source: str = "CT") -> None:
         )
 
 
+def read_labels(
+    path: str | os.PathLike, shape: tuple[int, int, int], world_from_ijk: ArrayLike
+) -> NDArray:
+    """Read a label map and put it on a CT's grid.
+
+    A map stored with its axes in another order or direction (a NIfTI converted from the CT's
+    DICOM by another tool, RAS against LPS) is the same grid: its voxels are reordered, exactly.
+    Anything else (another size, spacing, origin or an oblique difference) is refused: labels are
+    never interpolated.
+
+    Raises
+    ------
+    VolumeFileError
+        Unreadable file, or a grid that is not the CT's; names the file.
+    """
+    data, A = read_volume(path)
+    shape = tuple(int(n) for n in shape)
+    axes = _same_grid(A, np.asarray(world_from_ijk, dtype=np.float64), data.shape, shape)
+    if axes is None:
+        raise VolumeFileError(
+            f"{path}: label map grid {data.shape} does not match the CT's {shape} (the same "
+            "grid and affine are needed; labels are not resampled)"
+        )
+    perm, flips = axes
+    on_ct = np.transpose(data, perm)
+    return np.flip(on_ct, axis=flips) if flips else on_ct
+
+
+def _same_grid(A, target, data_shape, shape):
+    """``(perm, flips)`` taking a volume on ``A`` onto the grid ``target`` exactly, else None."""
+    M = np.linalg.solve(A, target)  # data index of each target index
+    perm = tuple(int(p) for p in np.abs(M[:3, :3]).argmax(axis=0))
+    if len(set(perm)) != 3 or any(data_shape[perm[a]] != shape[a] for a in range(3)):
+        return None
+    signs = np.sign(M[perm, range(3)])
+    expected = np.zeros((3, 3))
+    expected[perm, range(3)] = signs
+    offsets = [0.0 if signs[a] > 0 else shape[a] - 1.0 for a in range(3)]
+    if not (
+        np.allclose(M[:3, :3], expected, atol=1e-4) and np.allclose(M[perm, 3], offsets, atol=1e-3)
+    ):
+        return None
+    return perm, tuple(a for a in range(3) if signs[a] < 0)
+
+
 def write_volume(path: str | os.PathLike, data: ArrayLike, world_from_ijk: ArrayLike) -> Path:
     """Write a volume as NIfTI (``.nii``, ``.nii.gz``), NRRD (``.nrrd``) or MetaImage (``.mha``).
 
@@ -200,11 +247,11 @@ def _from_sitk(image, path: Path) -> tuple[NDArray, NDArray[np.float64]]:
             f"{path}: expected a scalar 3D volume, got {image.GetDimension()}D with "
             f"{image.GetNumberOfComponentsPerPixel()} component(s) per voxel"
         )
-    data = sitk.GetArrayFromImage(image).transpose(2, 1, 0)
+    data = sitk.GetArrayFromImage(image).transpose(2, 1, 0)  # Fortran-ordered, as nibabel's
     A = np.eye(4)
     A[:3, :3] = np.asarray(image.GetDirection()).reshape(3, 3) * np.asarray(image.GetSpacing())
     A[:3, 3] = image.GetOrigin()
-    return np.ascontiguousarray(data), A
+    return data, A
 
 
 def _read_sitk(path: Path) -> tuple[NDArray, NDArray[np.float64]]:
@@ -253,7 +300,7 @@ def dicom_series_in(folder: str | os.PathLike) -> list[DicomSeries]:
     for uid, members in groups.items():
         ds = members[0][1]
         what = f"{getattr(ds, 'Modality', '?')} '{getattr(ds, 'SeriesDescription', '')}'"
-        out.append(DicomSeries(uid, tuple(f for f, _ in members), what))
+        out.append(DicomSeries(uid, tuple(f for f, _ in members), what, tuple(members)))
     return sorted(out, key=lambda s: -len(s.files))
 
 
@@ -308,7 +355,9 @@ def _slice_geometry(folder: Path, chosen: DicomSeries):
     """Sort a series' slices; returns (files, affine with a unit slice axis, positions)."""
     import pydicom
 
-    heads = [(f, pydicom.dcmread(f, stop_before_pixels=True)) for f in chosen.files]
+    heads = list(chosen.headers) or [
+        (f, pydicom.dcmread(f, stop_before_pixels=True)) for f in chosen.files
+    ]
     where = f"{folder} (series {chosen.uid})"
     if len(heads) < 2:
         raise VolumeFileError(f"{where}: a single slice is not a 3D volume")
@@ -361,7 +410,7 @@ def _dicom_pixels(folder: Path, files: list[Path]) -> NDArray:
     array = sitk.GetArrayFromImage(image)  # (slices, rows, cols), in the order given
     if array.shape[0] != len(files):
         raise VolumeFileError(f"{folder}: read {array.shape[0]} slices of {len(files)}")
-    return np.ascontiguousarray(array.transpose(2, 1, 0))
+    return array.transpose(2, 1, 0)  # Fortran-ordered in (i, j, k), as nibabel reads NIfTI
 
 
 def _resample_slices(data: NDArray, positions: NDArray, step: float):

@@ -376,7 +376,9 @@ def _geometry(ds, profile: CArmProfile, path: Path, frames: int) -> _Geometry:
     if po is not None and len(po) == 2 and all(str(x) for x in po):
         orientation = (str(po[0]), str(po[1]))
     else:
-        assumed.append("image seen from the source (no Patient Orientation)")
+        assumed.append("image seen from the source, head at the top (no Patient Orientation)")
+        if str(getattr(ds, "PatientPosition", "")).upper().startswith("FF"):
+            assumed.append("feet-first patient: check that the head is at the image's top")
     try:
         sp = tuple(float(x) for x in np.asarray(spacing, dtype=float).reshape(-1))
         sp = sp * 2 if len(sp) == 1 else sp
@@ -420,6 +422,11 @@ def _read_dicom_xray(path: Path, profile: CArmProfile, intensities: str):
     except Exception as err:  # pydicom raises many types for non-DICOM or broken files
         raise XrayFileError(f"{path}: not a readable DICOM image ({err})") from None
     frames = int(getattr(ds, "NumberOfFrames", 1) or 1)
+    if "PerFrameFunctionalGroupsSequence" in ds:
+        raise XrayFileError(
+            f"{path}: an enhanced multi-frame image (per-frame functional groups) is not "
+            "supported; export the run as legacy XA/RF images"
+        )
     if int(getattr(ds, "SamplesPerPixel", 1)) != 1:
         raise XrayFileError(f"{path}: a colour image (Samples per Pixel > 1) is not an X-ray")
     raw = raw.reshape(frames, int(ds.Rows), int(ds.Columns))

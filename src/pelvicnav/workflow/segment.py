@@ -46,7 +46,7 @@ def segment(
         :func:`pelvicnav.shape.labels.check_bone_labels`); nothing is written then.
     """
     from pelvicnav.geometry import transforms as tf
-    from pelvicnav.io.volume import read_ct, read_volume
+    from pelvicnav.io.volume import read_ct, read_labels
     from pelvicnav.model import load_model
     from pelvicnav.phantom.ctsynth import bone_labels
     from pelvicnav.shape.fit import fit_labels
@@ -60,12 +60,7 @@ def segment(
     started = time.perf_counter()
     scheme = parse_scheme(label_scheme)
     hu, world_from_ijk = read_ct(ct, series=series)
-    raw, lab_affine = read_volume(labels)
-    if raw.shape != hu.shape or not np.allclose(lab_affine, world_from_ijk, atol=1e-4):
-        raise ValueError(
-            f"{labels}: label map grid {raw.shape} does not match the CT's {hu.shape} "
-            "(same grid and affine needed)"
-        )
+    raw = read_labels(labels, hu.shape, world_from_ijk)
     ours = to_bone_labels(raw, scheme)
     check_bone_labels(hu, ours, world_from_ijk, source=str(labels), raw_labels=raw)
     model = model or load_model()
