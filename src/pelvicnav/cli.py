@@ -493,6 +493,85 @@ def segment(
     console.print(f"wrote {out} ({record['seconds']['fit']:.1f} s fitting)")
 
 
+@app.command("plan")
+def plan_command(
+    ct: Annotated[Path, typer.Argument(help=_CT_HELP)],
+    out: Annotated[Path, typer.Option(help="Plan folder to write.")],
+    labels: Annotated[
+        Path | None, typer.Option(help="Label map of the bones (any format the CT takes).")
+    ] = None,
+    label_scheme: LabelSchemeOption = "ours",
+    dislocated: Annotated[
+        str, typer.Option(help="auto, left_hip, right_hip, both or none.")
+    ] = "auto",
+    model: Annotated[
+        Path | None,
+        typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
+    ] = None,
+    series: SeriesOption = None,
+) -> None:
+    """Plan the reduction: the bones of the CT, which one is dislocated, and its target."""
+    from rich.console import Console
+
+    from pelvicnav.model import load_model
+    from pelvicnav.workflow.plan import make_plan
+
+    console = Console()
+    try:
+        with console.status("planning") as status:
+            plan = make_plan(
+                ct, out, labels=labels, label_scheme=label_scheme, dislocated=dislocated,
+                model=load_model(model), series=series,
+                progress=lambda step: status.update(f"planning: {step}"),
+            )  # fmt: skip
+    except ValueError as err:
+        raise _fail(str(err)) from None
+    console.print(plan.decision["description"])
+    for bone, r in plan.residual_in_ct.items():
+        console.print(f"{bone}: to reach the target, {r['description']}")
+    console.print(f"wrote {out} (plan {plan.identity})")
+
+
+@app.command("guide")
+def guide_command(
+    plan: Annotated[Path, typer.Argument(help="Plan folder (from `pelvicnav plan`).")],
+    views: Annotated[Path, typer.Option(help="views.json of this frame's radiographs.")],
+    out: Annotated[Path, typer.Option(help="Session folder (frames are added to it).")],
+    seed: Annotated[int, typer.Option(help="Seed of CMA-ES.")] = 0,
+) -> None:
+    """Register one intraoperative frame against the plan and report the residual."""
+    from rich.console import Console
+
+    from pelvicnav.workflow.guide import guide_frame
+
+    console = Console()
+    try:
+        with console.status("registering"):
+            frame = guide_frame(plan, views, out, seed=seed)
+    except ValueError as err:
+        raise _fail(str(err)) from None
+    if not frame.converged:
+        console.print(f"[bold red]frame {frame.index}: UNRELIABLE registration: not guidance[/]")
+    else:
+        for bone, r in frame.residual.items():
+            console.print(f"frame {frame.index} ({frame.mode}): {bone}: {r['description']}")
+    console.print(f"wrote {frame.folder} ({frame.seconds:.1f} s) and {out / 'report.html'}")
+
+
+@app.command("report")
+def report_command(
+    folder: Annotated[Path, typer.Argument(help="A plan, session or study folder.")],
+) -> None:
+    """Write FOLDER/report.html: one self-contained page (images inline, no network)."""
+    from pelvicnav.guide.report import write_report
+
+    try:
+        path = write_report(folder)
+    except ValueError as err:
+        raise _fail(str(err)) from None
+    typer.echo(f"wrote {path}")
+
+
 @views_app.command("from-dicom")
 def views_from_dicom(
     files: Annotated[
@@ -773,14 +852,27 @@ def _residual(result, plan: dict, volume, labels) -> dict:
 def demo(
     out: Annotated[Path, typer.Option(help="Folder for the demo's figures.")] = Path("demo-output"),
     atlas: AtlasOption = None,
+    tour: Annotated[
+        bool, typer.Option(help="Instead: the short tour of C-arm geometry and planning figures.")
+    ] = False,
 ) -> None:
-    """Show what the toolkit does so far: C-arm geometry and the atlas projected into views."""
-    from pelvicnav.demo import run_demo
+    """The whole workflow offline: a simulated patient's CT -> plan -> two guided frames ->
+    OUT/report.html (or, with --tour, the geometry and planning figures)."""
+    from rich.console import Console
 
+    console = Console()
     try:
-        run_demo(out, atlas=atlas)
+        if tour:
+            from pelvicnav.demo import run_demo as run_tour
+
+            run_tour(out, atlas=atlas)
+            return
+        from pelvicnav.workflow.demo import run_demo
+
+        summary = run_demo(out, atlas=atlas, say=console.print)
     except ValueError as err:
         raise _fail(str(err)) from None
+    console.print(f"done in {summary['seconds']:.0f} s; open {summary['report']}")
 
 
 def main() -> None:

@@ -311,13 +311,8 @@ class TargetPlanner:
         obs = _check_meshes(observed, self.observed, nv, "observed")
         cur = _check_meshes(current, self.dislocated, nv, "dislocated")
         m = self.model
-        G = m.normalised_from_subject(np.stack([obs[b] for b in self.observed]))
+        G, v = self._weights(obs, method)
         subject_from_normalised = tf.invert(G)
-        rows = np.concatenate([np.arange(7 * BONES.index(b), 7 * BONES.index(b) + 7) for b in obs])
-        b_obs = np.concatenate([m.tangent(b, tf.apply(G, obs[b])) for b in self.observed])
-        v = solve_weights(
-            b_obs - m.mean[rows], m.modes[rows], m.variances, prior=self.prior, method=method
-        )
         poses = m.poses_from_vector(m.mean + m.modes @ v)
         if refine not in ("joint", "collision", "none"):
             raise ValueError(f"refine must be 'joint', 'collision' or 'none', got {refine!r}")
@@ -351,6 +346,28 @@ class TargetPlanner:
         if refine in ("joint", "collision"):
             out = self._refine(out, obs)
         return out
+
+    def _weights(self, obs: Mapping[str, NDArray], method: str) -> tuple[NDArray, NDArray]:
+        """The normalising frame of the observed bones and the SPM weights explaining them."""
+        m = self.model
+        G = m.normalised_from_subject(np.stack([obs[b] for b in self.observed]))
+        rows = np.concatenate([np.arange(7 * BONES.index(b), 7 * BONES.index(b) + 7) for b in obs])
+        b_obs = np.concatenate([m.tangent(b, tf.apply(G, obs[b])) for b in self.observed])
+        v = solve_weights(
+            b_obs - m.mean[rows], m.modes[rows], m.variances, prior=self.prior, method=method
+        )
+        return G, v
+
+    def plausibility(
+        self, observed: Mapping[str, ArrayLike], *, method: str = "trust-ncg"
+    ) -> float:
+        """How unusual the observed bones' relative poses are: ``sum_k v_k^2 / lambda_k`` of the
+        SPM weights that explain them (equation 8a; 0 for the mean pelvis). A dislocated bone
+        among the observed ones needs large weights."""
+        nv = self.model.mean_shapes.shape[1]
+        obs = _check_meshes(observed, self.observed, nv, "observed")
+        _, v = self._weights(obs, method)
+        return float(np.sum(v**2 / self.model.variances))
 
     # ---- SPM_CC ---------------------------------------------------------------------------------
     def _refine(

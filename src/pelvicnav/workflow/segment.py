@@ -105,11 +105,11 @@ def _write(out: Path, hu, ours, fitted, world_from_ijk, model, fits, record) -> 
         write_nifti(tmp / "labels.nii.gz", ours, world_from_ijk)
         for b, bone in enumerate(BONES):
             write_meshes(tmp, bone, fits[bone].vertices, model.faces[b], title=f"pelvicnav {bone}")
-        _contours(hu, ours, fitted, world_from_ijk, tmp / "contours.png")
+        write_contours(hu, ours, fitted, world_from_ijk, tmp / "contours.png")
         (tmp / "segmentation.json").write_text(json.dumps(record, indent=2) + "\n")
 
 
-def _contours(hu, labels, fitted, world_from_ijk, path: Path) -> None:
+def write_contours(hu, labels, fitted, world_from_ijk, path: Path) -> None:
     """Axial, coronal and sagittal slices through each bone's centre: the label map's contours
     (solid) and the fitted meshes' (dashed)."""
     import matplotlib
