@@ -72,7 +72,7 @@ def test_demo_without_atlas_runs_on_the_packaged_model(tmp_path, monkeypatch):
     monkeypatch.delenv("PELVICNAV_ATLAS", raising=False)
     monkeypatch.setenv("COLUMNS", "200")  # rich wraps at the terminal width
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    res = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])
+    res = runner.invoke(app, ["demo", "--tour", "--out", str(tmp_path / "demo")])
     assert res.exit_code == 0, res.output
     assert "C-arm views" in res.output and "from model" in res.output
     assert "the packaged pelvis model" in res.output
@@ -83,7 +83,7 @@ def test_demo_without_atlas_runs_on_the_packaged_model(tmp_path, monkeypatch):
 
 def test_demo_with_atlas_writes_figure(tiny_atlas, tmp_path):
     out = tmp_path / "demo"
-    res = runner.invoke(app, ["demo", "--out", str(out), "--atlas", str(tiny_atlas)])
+    res = runner.invoke(app, ["demo", "--tour", "--out", str(out), "--atlas", str(tiny_atlas)])
     assert res.exit_code == 0, res.output
     png = out / "atlas_projection.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -149,7 +149,9 @@ def test_spm_modes_figure_on_real_atlas(real_atlas_path, tmp_path):
 
 @pytest.mark.atlas
 def test_demo_plans_a_reduction_on_the_real_atlas(real_atlas_path, tmp_path):
-    res = runner.invoke(app, ["demo", "--out", str(tmp_path), "--atlas", str(real_atlas_path)])
+    res = runner.invoke(
+        app, ["demo", "--tour", "--out", str(tmp_path), "--atlas", str(real_atlas_path)]
+    )
     assert res.exit_code == 0, res.output
     assert "SPM_CC  target error" in res.output
     assert (tmp_path / "target_pose.png").read_bytes()[:4] == b"\x89PNG"

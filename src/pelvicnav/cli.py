@@ -686,29 +686,6 @@ def simulate(
     )
 
 
-def _read_plan(path: Path) -> dict:
-    import numpy as np
-
-    from pelvicnav import BONES
-    from pelvicnav.io.jsonfile import read_json
-
-    plan = read_json(path)
-    if not isinstance(plan, dict):
-        raise ValueError(f"{path}: expected a JSON object")
-    for key in ("dislocated_bone", "target_from_current"):
-        if key not in plan:
-            raise ValueError(f"{path}: missing '{key}'")
-    plan.setdefault("reference_bone", "sacrum")
-    for key in ("dislocated_bone", "reference_bone"):
-        if plan[key] not in BONES:
-            raise ValueError(f"{path}: {key} {plan[key]!r} is not one of {BONES}")
-    T = np.asarray(plan["target_from_current"], dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{path}: target_from_current must be a finite 4 x 4 matrix")
-    plan["target_from_current"] = T
-    return plan
-
-
 @app.command("register")
 def register(
     ct: Annotated[Path, typer.Option(help=_CT_HELP)],
@@ -744,76 +721,32 @@ def register(
     Writes OUT (result.json) and, beside it, transforms/{bone}.tfm (ITK, LPS; with --plan also
     transforms/residual.tfm) for 3D Slicer and ITK; see docs/slicer.md.
     """
-    import json
-
-    import numpy as np
     from rich.console import Console
     from rich.progress import Progress
 
-    from pelvicnav.drr.volume import Volume
-    from pelvicnav.guide.overlay import write_view_overlays
-    from pelvicnav.io.atomic import write_text
-    from pelvicnav.io.itk_transform import write_pose_transforms
-    from pelvicnav.io.views import read_views
-    from pelvicnav.io.volume import read_ct, read_labels
-    from pelvicnav.register.multibody import (
-        RegistrationSettings,
-        RegistrationViews,
-        level_models,
-        register_multibody,
-    )
-    from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
+    from pelvicnav.workflow.register import register_files
 
     console = Console()
-    try:
-        if dof not in (6, 9):
-            raise ValueError(f"--dof must be 6 or 9, got {dof}")
-        the_plan = _read_plan(plan) if plan is not None else None
-        vs, _ = read_views(views)
-        data, affine = read_ct(ct, series=series)
-        lab = read_labels(labels, data.shape, affine)
-        raw_labels = lab
-        lab = to_bone_labels(lab, parse_scheme(label_scheme))
-        check_bone_labels(data, lab, affine, source=str(labels), raw_labels=raw_labels)
-        rv = RegistrationViews(
-            tuple(v.image for v in vs),
-            tuple(v.projection_matrix for v in vs),
-            tuple(tuple(v.pixel_spacing) for v in vs),
+    if plan is None:
+        console.print(
+            "[yellow]note:[/] no --plan: every bone gets the full search range and no "
+            "residual is computed; with the plan naming the dislocated bone the "
+            "registration is more reliable (docs/registration.md)"
         )
-        settings = RegistrationSettings(dof=dof)
-        if the_plan is None:
-            console.print(
-                "[yellow]note:[/] no --plan: every bone gets the full search range and no "
-                "residual is computed; with the plan naming the dislocated bone the "
-                "registration is more reliable (docs/registration.md)"
-            )
-        volume = Volume(np.asarray(data, dtype=np.float32), affine)
-        try:  # one set of bone models for registration and overlays
-            models = level_models(volume, lab, settings.factors)
-        except ValueError as err:
-            raise ValueError(f"{labels}: {err}") from None
+    try:
         with Progress(console=console) as bar:
-            tasks = {
-                "stage 1": bar.add_task("stage 1", total=len(settings.factors)),
-                "stage 2": bar.add_task("stage 2", total=len(settings.factors)),
-            }
+            tasks = {}
 
             def report(stage: str, done: int, total: int) -> None:
+                if stage not in tasks:
+                    tasks[stage] = bar.add_task(stage, total=total)
                 bar.update(tasks[stage], completed=done)
 
-            result = register_multibody(
-                volume, lab, rv, seed=seed, settings=settings, progress=report, models=models,
-                dislocated=None if the_plan is None else the_plan["dislocated_bone"],
+            record, result = register_files(
+                ct, labels, views, out, plan=plan, dof=dof, seed=seed, overlay=overlay,
+                overlay_dicom=overlay_dicom, label_scheme=label_scheme, series=series,
+                progress=report,
             )  # fmt: skip
-        record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed}
-        record |= result.to_json()
-        if the_plan is not None:
-            record["residual"] = _residual(result, the_plan, volume, lab)
-        if overlay is not None:
-            write_view_overlays(overlay, models[-1], vs, result, the_plan, dicom=overlay_dicom)
-        residual = record.get("residual", {}).get("world_transform")
-        write_pose_transforms(out.parent / "transforms", result.poses, residual=residual)
-        write_text(out, json.dumps(record, indent=2) + "\n")
     except ValueError as err:
         raise _fail(str(err)) from None
     status = "[green]converged[/]" if result.converged else "[red]NOT converged[/]"
@@ -825,27 +758,6 @@ def register(
         console.print(f"[yellow]warning:[/] {w}")
     if "residual" in record:
         console.print(record["residual"]["description"])
-
-
-def _residual(result, plan: dict, volume, labels) -> dict:
-    import numpy as np
-
-    from pelvicnav import LABELS
-    from pelvicnav.guide.residual import residual_reduction
-
-    bone, ref = plan["dislocated_bone"], plan["reference_bone"]
-    centroid = volume.world_points(np.argwhere(labels == LABELS[bone])).mean(axis=0)
-    res = residual_reduction(
-        result.poses[ref], result.poses[bone], plan["target_from_current"], centroid
-    )
-    return {
-        "bone": bone,
-        "reference_bone": ref,
-        "world_transform": np.asarray(res.transform).tolist(),
-        "distance_mm": res.distance_mm,
-        "angle_deg": res.angle_deg,
-        "description": res.describe(),
-    }
 
 
 @app.command("demo")

@@ -1,0 +1,132 @@
+"""``pelvicnav register``: the low-level registration of a CT's bones to a view set, from files.
+
+Reads and checks the CT, the label map (any scheme; its bones must be bone and on their sides),
+the view set and an optional plan (``dislocated_bone``, ``target_from_current``, optionally
+``reference_bone``: a hand-written JSON or ``pelvicnav plan``'s ``plan.json``), registers
+(:func:`pelvicnav.register.multibody.register_multibody`) and writes ``result.json``,
+``transforms/*.tfm`` beside it and, if asked, the overlays. Nothing is written when an input is
+refused.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pelvicnav import BONES, LABELS
+
+__all__ = ["read_register_plan", "register_files"]
+
+
+def read_register_plan(path: str | os.PathLike) -> dict:
+    """A plan as the register command reads it: ``dislocated_bone``, ``target_from_current``
+    (4 x 4, CT frame) and ``reference_bone`` (default sacrum). Raises ValueError naming the file."""
+    from pelvicnav.io.jsonfile import read_json
+
+    plan = read_json(path)
+    if not isinstance(plan, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    for key in ("dislocated_bone", "target_from_current"):
+        if key not in plan:
+            raise ValueError(f"{path}: missing '{key}'")
+    if plan["dislocated_bone"] is None:
+        raise ValueError(f"{path}: the plan has no dislocated bone; register without --plan")
+    plan.setdefault("reference_bone", "sacrum")
+    for key in ("dislocated_bone", "reference_bone"):
+        if plan[key] not in BONES:
+            raise ValueError(f"{path}: {key} {plan[key]!r} is not one of {BONES}")
+    T = np.asarray(plan["target_from_current"], dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{path}: target_from_current must be a finite 4 x 4 matrix")
+    plan["target_from_current"] = T
+    return plan
+
+
+def register_files(
+    ct: str | os.PathLike,
+    labels: str | os.PathLike,
+    views: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    plan: str | os.PathLike | None = None,
+    dof: int = 6,
+    seed: int = 0,
+    overlay: str | os.PathLike | None = None,
+    overlay_dicom: bool = False,
+    label_scheme: str = "ours",
+    series: str | None = None,
+    progress=None,
+):
+    """Register and write the outputs; returns ``(record, result)``.
+
+    Raises
+    ------
+    ValueError
+        Any input refused (the message names the file); nothing is written then.
+    """
+    from pelvicnav.drr.volume import Volume
+    from pelvicnav.guide.overlay import write_view_overlays
+    from pelvicnav.io.atomic import write_text
+    from pelvicnav.io.itk_transform import write_pose_transforms
+    from pelvicnav.io.views import read_views
+    from pelvicnav.io.volume import read_ct, read_labels
+    from pelvicnav.register.multibody import (
+        RegistrationSettings,
+        RegistrationViews,
+        level_models,
+        register_multibody,
+    )
+    from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
+
+    if dof not in (6, 9):
+        raise ValueError(f"--dof must be 6 or 9, got {dof}")
+    the_plan = read_register_plan(plan) if plan is not None else None
+    vs, _ = read_views(views)
+    data, affine = read_ct(ct, series=series)
+    raw = read_labels(labels, data.shape, affine)
+    lab = to_bone_labels(raw, parse_scheme(label_scheme))
+    check_bone_labels(data, lab, affine, source=str(labels), raw_labels=raw)
+    rv = RegistrationViews(tuple(v.image for v in vs), tuple(v.projection_matrix for v in vs),
+                           tuple(tuple(v.pixel_spacing) for v in vs))  # fmt: skip
+    settings = RegistrationSettings(dof=dof)
+    volume = Volume(np.asarray(data, dtype=np.float32), affine)
+    try:  # one set of bone models for registration and overlays
+        models = level_models(volume, lab, settings.factors)
+    except ValueError as err:
+        raise ValueError(f"{labels}: {err}") from None
+    result = register_multibody(
+        volume, lab, rv, seed=seed, settings=settings, progress=progress, models=models,
+        dislocated=None if the_plan is None else the_plan["dislocated_bone"],
+    )  # fmt: skip
+    record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed}
+    record |= result.to_json()
+    if the_plan is not None:
+        record["residual"] = _residual(result, the_plan, volume, lab)
+    if overlay is not None:
+        write_view_overlays(overlay, models[-1], vs, result, the_plan, dicom=overlay_dicom)
+    out = Path(out)
+    residual = record.get("residual", {}).get("world_transform")
+    write_pose_transforms(out.parent / "transforms", result.poses, residual=residual)
+    write_text(out, json.dumps(record, indent=2) + "\n")
+    return record, result
+
+
+def _residual(result, plan: dict, volume, labels) -> dict:
+    from pelvicnav.guide.residual import residual_reduction
+
+    bone, ref = plan["dislocated_bone"], plan["reference_bone"]
+    centroid = volume.world_points(np.argwhere(labels == LABELS[bone])).mean(axis=0)
+    res = residual_reduction(
+        result.poses[ref], result.poses[bone], plan["target_from_current"], centroid
+    )
+    return {
+        "bone": bone,
+        "reference_bone": ref,
+        "world_transform": np.asarray(res.transform).tolist(),
+        "distance_mm": res.distance_mm,
+        "angle_deg": res.angle_deg,
+        "description": res.describe(),
+    }
