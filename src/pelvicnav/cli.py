@@ -124,17 +124,10 @@ def atlas_info(atlas: AtlasOption = None) -> None:
         f"[bold]atlas[/] {a.source}: {a.n_subjects} subjects, {a.n_vertices} vertices/bone"
     )
     table = Table("bone", "vertices", "triangles", "mean extent x/y/z (mm)", "centroid (mm, LPS)")
-    for b, bone in enumerate(a.bones):
-        v = a.vertices[:, b]
-        extent = (v.max(axis=1) - v.min(axis=1)).mean(axis=0)
-        centroid = v.mean(axis=(0, 1))
-        table.add_row(
-            bone,
-            str(v.shape[1]),
-            str(len(a.faces[b])),
-            " / ".join(f"{x:.1f}" for x in extent),
-            " / ".join(f"{x:.1f}" for x in centroid),
-        )
+    for row in a.bone_summary():
+        table.add_row(row["bone"], str(row["vertices"]), str(row["triangles"]),
+                      " / ".join(f"{x:.1f}" for x in row["mean_extent_mm"]),
+                      " / ".join(f"{x:.1f}" for x in row["centroid_mm"]))  # fmt: skip
     console.print(table)
     console.print("subjects: " + ", ".join(str(s) for s in a.subject_ids))
 
@@ -253,14 +246,12 @@ def study_spm_modes(
 ) -> None:
     """Figure of the first four SPM modes at +-3 sd (cf. the paper's figure 2)."""
     from pelvicnav.io.atlas import AtlasNotFoundError
-    from pelvicnav.pose.spm import PoseModel
-    from pelvicnav.studies.figures import plot_spm_modes
+    from pelvicnav.studies.figures import spm_modes_figure
 
     try:
-        a = _population(atlas)
+        spm_modes_figure(_population(atlas), out)
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
-    plot_spm_modes(PoseModel.fit(a.vertices), out)
     typer.echo(f"wrote {out}")
 
 
@@ -278,25 +269,17 @@ def study_population(
     from rich.console import Console
     from rich.table import Table
 
-    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
-    from pelvicnav.phantom.population import MODEL, PROCEDURAL, load_population
-    from pelvicnav.studies.population import run_population_study
+    from pelvicnav.io.atlas import AtlasNotFoundError
+    from pelvicnav.studies.population import population_study
 
     console = Console()
     try:
-        if population not in (MODEL, PROCEDURAL):
-            raise ValueError(f"--population must be 'model' or 'procedural', got {population!r}")
-        try:
-            reference = load_atlas(atlas)
-        except AtlasNotFoundError as err:
-            if atlas is not None:
-                raise
-            console.print(f"[yellow]{err}[/]\nno atlas: the table shows the population only")
-            reference = None
-        pop = load_population(population, n_subjects=subjects, seed=seed)
-        rows = run_population_study(out, pop, reference)
+        rows, reference, note = population_study(out, population, atlas, subjects=subjects,
+                                                 seed=seed)  # fmt: skip
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
+    if note:
+        console.print(f"[yellow]{note}[/]")
     table = Table(
         "measure (mm)", "sampled mean ± sd", "range", title=f"{population} population, seed {seed}"
     )
@@ -345,8 +328,7 @@ def study_registration(
         if cases < 1:
             raise ValueError(f"--cases must be >= 1, got {cases}")
         a = _population(atlas)
-        views = ("ap", "oblique30") if dof == 6 else ("ap",)
-        settings = RegistrationStudySettings(n_cases=cases, seed=seed, dof=dof, views=views)
+        settings = RegistrationStudySettings.for_dof(dof, n_cases=cases, seed=seed)
         with Progress() as bar:
             task = bar.add_task("cases", total=cases)
             rows = run_registration_study(
@@ -366,30 +348,21 @@ def study_ssm_reference(atlas: AtlasOption = None) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from pelvicnav.io.atlas import BONE_FILES, AtlasNotFoundError, load_atlas, resolve_atlas_path
-    from pelvicnav.io.statismo import read_statismo
-    from pelvicnav.shape.reference import compare_with_reference
-    from pelvicnav.shape.ssm import ShapeModel
+    from pelvicnav.io.atlas import AtlasNotFoundError
+    from pelvicnav.shape.reference import compare_atlas_models
 
     try:
-        a = load_atlas(atlas)
-        root = resolve_atlas_path(atlas)
-        table = Table(
-            "bone", "mean RMS (mm)", "relative", "spectrum corr.", "max |fraction diff|",
-            title="our SSM vs the atlas's statismo model",
-        )  # fmt: skip
-        for b, bone in enumerate(a.bones):
-            ref = read_statismo(root / "SSM" / f"{BONE_FILES[bone][1]}.h5")
-            c = compare_with_reference(ShapeModel.fit(a.vertices[:, b]), ref.mean, ref.variances)
-            table.add_row(
-                bone,
-                f"{c['mean_rms_mm']:.2f}",
-                f"{100 * c['mean_rms_relative']:.1f}%",
-                f"{c['spectrum_correlation']:.3f}",
-                f"{c['max_fraction_difference']:.3f}",
-            )
+        comparison = compare_atlas_models(atlas)
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
+    table = Table(
+        "bone", "mean RMS (mm)", "relative", "spectrum corr.", "max |fraction diff|",
+        title="our SSM vs the atlas's statismo model",
+    )  # fmt: skip
+    for bone, c in comparison.items():
+        table.add_row(bone, f"{c['mean_rms_mm']:.2f}", f"{100 * c['mean_rms_relative']:.1f}%",
+                      f"{c['spectrum_correlation']:.3f}",
+                      f"{c['max_fraction_difference']:.3f}")  # fmt: skip
     Console().print(table)
 
 
@@ -404,20 +377,19 @@ def model_build(
     """Fit the pelvis model (SSMs, SPM, target planners) from the atlas and write it."""
     from rich.console import Console
 
-    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
-    from pelvicnav.model import build_model, save_model
+    from pelvicnav.io.atlas import AtlasNotFoundError
+    from pelvicnav.model import build_model_file
 
     console = Console()
     try:
-        a = load_atlas(atlas)
         with console.status("fitting") as status:
-            model = build_model(a, variance_kept=variance, progress=status.update)
-        save_model(model, out)
+            model = build_model_file(atlas, out, variance_kept=variance, progress=status.update)
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
     modes = model.provenance["shape_modes"]
     console.print(
-        f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) from {a.n_subjects} subjects; "
+        f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) from "
+        f"{len(model.subject_ids)} subjects; "
         f"shape modes {modes}"
     )
 
@@ -597,25 +569,18 @@ def views_from_dicom(
     """Turn C-arm images and their DICOM geometry into a view set for `pelvicnav register`."""
     from rich.console import Console
 
-    from pelvicnav.io.xray_dicom import bone_centroid, convert_views, read_profile
+    from pelvicnav.io.xray_dicom import convert_views
 
     console = Console()
     try:
-        if (isocenter is None) == (ct is None):
-            raise ValueError(
-                "give the isocentre's place in the CT's world: --isocenter x,y,z (mm) or --ct CT "
-                "(the centroid of its bone); DICOM X-ray tags do not say where the patient lies"
-            )
-        if ct is not None:
-            iso = bone_centroid(ct)
-        else:
+        if isocenter is not None:
             try:
-                iso = [float(x) for x in isocenter.split(",")]
+                isocenter = [float(x) for x in isocenter.split(",")]
             except ValueError:
                 raise ValueError(f"--isocenter must be 'x,y,z' in mm, got {isocenter!r}") from None
         views = convert_views(
-            files, out, isocenter=iso, profile=read_profile(profile) if profile else None,
-            intensities=intensities, degrees_of_freedom=dof,
+            files, out, isocenter=isocenter, ct=ct, profile=profile, intensities=intensities,
+            degrees_of_freedom=dof,
         )  # fmt: skip
     except ValueError as err:
         raise _fail(str(err)) from None

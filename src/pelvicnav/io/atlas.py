@@ -138,6 +138,18 @@ class Atlas:
         except ValueError:
             raise ValueError(f"unknown bone {bone!r}; expected one of {self.bones}") from None
 
+    def bone_summary(self) -> list[dict]:
+        """Per bone: vertex and triangle counts, mean extent and mean centroid (mm, LPS)."""
+        rows = []
+        for b, bone in enumerate(self.bones):
+            v = self.vertices[:, b]
+            rows.append({
+                "bone": bone, "vertices": int(v.shape[1]), "triangles": len(self.faces[b]),
+                "mean_extent_mm": (v.max(axis=1) - v.min(axis=1)).mean(axis=0).tolist(),
+                "centroid_mm": v.mean(axis=(0, 1)).tolist(),
+            })  # fmt: skip
+        return rows
+
     def subject_index(self, subject_id: int) -> int:
         """Position of an atlas id (``ValueError`` for an unknown id)."""
         try:

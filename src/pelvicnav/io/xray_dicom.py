@@ -517,17 +517,29 @@ def convert_views(
     files: list[str | os.PathLike],
     out: str | os.PathLike,
     *,
-    isocenter: ArrayLike,
-    profile: CArmProfile | None = None,
+    isocenter: ArrayLike | None = None,
+    ct: str | os.PathLike | None = None,
+    profile: CArmProfile | str | os.PathLike | None = None,
     intensities: str = "auto",
     degrees_of_freedom: int = 6,
 ) -> list[View]:
     """Read X-ray files and write them as a view set (``out``: the JSON, images beside it).
 
+    The isocentre's place in the CT's world is ``isocenter`` (mm) or the centroid of the bone
+    of ``ct`` (exactly one of them). ``profile``: a :class:`CArmProfile` or its JSON file.
     Everything is read and checked before anything is written.
     """
     from pelvicnav.io.views import write_views
 
+    if (isocenter is None) == (ct is None):
+        raise ValueError(
+            "give the isocentre's place in the CT's world: --isocenter x,y,z (mm) or --ct CT "
+            "(the centroid of its bone); DICOM X-ray tags do not say where the patient lies"
+        )
+    if ct is not None:
+        isocenter = bone_centroid(ct)
+    if profile is not None and not isinstance(profile, CArmProfile):
+        profile = read_profile(profile)
     if degrees_of_freedom not in (6, 9):
         raise ValueError(f"degrees of freedom must be 6 or 9, got {degrees_of_freedom}")
     if not files:

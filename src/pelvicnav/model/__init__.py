@@ -3,6 +3,7 @@
 from pelvicnav.model.file import (
     MODEL_ENV,
     ModelFileError,
+    build_model_file,
     load_model,
     resolve_model_path,
     save_model,
@@ -15,6 +16,7 @@ __all__ = [
     "ModelFileError",
     "PelvisModel",
     "build_model",
+    "build_model_file",
     "load_model",
     "resolve_model_path",
     "save_model",

@@ -35,6 +35,7 @@ __all__ = [
     "MODEL_ENV",
     "PACKAGED_MODEL",
     "ModelFileError",
+    "build_model_file",
     "load_model",
     "resolve_model_path",
     "save_model",
@@ -310,3 +311,16 @@ def load_model(path: str | os.PathLike | None = None) -> PelvisModel:
 @functools.lru_cache(maxsize=4)
 def _cached(path: str, mtime_ns: int, size: int) -> PelvisModel:
     return _read(Path(path))
+
+
+def build_model_file(
+    atlas, out: str | os.PathLike, *, variance_kept: float = 0.99, progress=None
+) -> PelvisModel:
+    """``pelvicnav model build``: fit the model from an atlas (a path, or None for the
+    configured one) and save it to ``out``."""
+    from pelvicnav.io.atlas import load_atlas
+    from pelvicnav.model.pelvis import build_model
+
+    model = build_model(load_atlas(atlas), variance_kept=variance_kept, progress=progress)
+    save_model(model, out)
+    return model

@@ -8,7 +8,7 @@ from pelvicnav.geometry import transforms as tf
 from pelvicnav.geometry.procrustes import fit_transform
 from pelvicnav.shape.ssm import ShapeModel
 
-__all__ = ["compare_with_reference"]
+__all__ = ["compare_atlas_models", "compare_with_reference"]
 
 
 def compare_with_reference(ours: ShapeModel, mean: np.ndarray, variances: np.ndarray) -> dict:
@@ -51,3 +51,20 @@ def compare_with_reference(ours: ShapeModel, mean: np.ndarray, variances: np.nda
             "reference": float(ref_var.sum() / (len(ref_mean) * ref_radius**2)),
         },
     }
+
+
+def compare_atlas_models(atlas=None) -> dict[str, dict]:
+    """Per bone: our SSM fitted on an atlas against the statismo model shipped with it
+    (:func:`compare_with_reference`). ``atlas``: a path, or None for the configured one."""
+    from pelvicnav.io.atlas import BONE_FILES, load_atlas, resolve_atlas_path
+    from pelvicnav.io.statismo import read_statismo
+
+    a = load_atlas(atlas)
+    root = resolve_atlas_path(atlas)
+    out = {}
+    for b, bone in enumerate(a.bones):
+        ref = read_statismo(root / "SSM" / f"{BONE_FILES[bone][1]}.h5")
+        out[bone] = compare_with_reference(
+            ShapeModel.fit(a.vertices[:, b]), ref.mean, ref.variances
+        )
+    return out

@@ -52,3 +52,8 @@ def plot_spm_modes(model: PoseModel, path: str | os.PathLike, *, n_modes: int = 
     fig.tight_layout()
     save_figure(fig, path, dpi=100)
     return path
+
+
+def spm_modes_figure(population, path: str | os.PathLike, *, n_modes: int = 4) -> Path:
+    """``pelvicnav study spm-modes``: fit the SPM on a population and plot its first modes."""
+    return plot_spm_modes(PoseModel.fit(population.vertices), path, n_modes=n_modes)

@@ -12,7 +12,12 @@ from numpy.typing import NDArray
 from pelvicnav.io.atlas import Atlas
 from pelvicnav.io.atomic import save_figure, write_text
 
-__all__ = ["plot_population", "run_population_study", "size_table"]
+__all__ = [
+    "plot_population",
+    "population_study",
+    "run_population_study",
+    "size_table",
+]
 
 _MEASURES = (
     ("sacrum_extent", 0, "sacrum width (x)"),
@@ -171,3 +176,36 @@ def run_population_study(
     write_text(out / "sizes.md", _markdown(rows))
     plot_population(population, out / "population.png")
     return rows
+
+
+def population_study(
+    out: str | os.PathLike,
+    population: str,
+    atlas: str | os.PathLike | None = None,
+    *,
+    subjects: int = 40,
+    seed: int = 0,
+) -> tuple[list[dict[str, object]], Atlas | None, str]:
+    """``pelvicnav study population``: draw a population ("model" or "procedural") and compare
+    it with the atlas when there is one. Returns the rows, the atlas (or None) and a note saying
+    why there is no comparison (or "").
+
+    Raises
+    ------
+    ValueError
+        An unknown population kind. AtlasNotFoundError: an atlas path given but not there.
+    """
+    from pelvicnav.io.atlas import AtlasNotFoundError, load_atlas
+    from pelvicnav.phantom.population import MODEL, PROCEDURAL, load_population
+
+    if population not in (MODEL, PROCEDURAL):
+        raise ValueError(f"--population must be 'model' or 'procedural', got {population!r}")
+    note = ""
+    try:
+        reference = load_atlas(atlas)
+    except AtlasNotFoundError as err:
+        if atlas is not None:
+            raise
+        reference, note = None, f"{err}\nno atlas: the table shows the population only"
+    pop = load_population(population, n_subjects=subjects, seed=seed)
+    return run_population_study(out, pop, reference), reference, note

@@ -46,6 +46,11 @@ class RegistrationStudySettings:
     setup_deg: float = 5.0
     source_error_mm: float = 15.0
 
+    @classmethod
+    def for_dof(cls, dof: int, **kwargs) -> RegistrationStudySettings:
+        """Two views (AP, oblique 30) for 6 DoF; the AP view alone for 9 DoF."""
+        return cls(dof=dof, views=("ap", "oblique30") if dof == 6 else ("ap",), **kwargs)
+
 
 def _random_rigid(rng, max_mm, max_deg, centre) -> NDArray[np.float64]:
     """A rigid motion about ``centre`` with |t| <= max_mm and angle <= max_deg (uniform)."""

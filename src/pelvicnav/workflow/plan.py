@@ -133,8 +133,10 @@ def decide_dislocated(meshes: dict, model, requested: str = "auto") -> tuple[Dec
     else:
         chosen, mode = {"both": HIPS, "none": ()}.get(requested, (requested,)), "given"
     targets = {h: corrections[h][0] for h in chosen}
-    if len(chosen) == 2:  # both out: each from the sacrum alone
-        targets = {h: _correction(model.planner(("sacrum",)), meshes, h)[0] for h in HIPS}
+    if len(chosen) == 2:  # both out: both from the sacrum alone
+        both = model.planner(("sacrum",)).estimate({"sacrum": meshes["sacrum"]},
+                                                   {h: meshes[h] for h in HIPS})  # fmt: skip
+        targets = {h: both[h].target_from_current for h in HIPS}
     return Decision(tuple(chosen), scores, float(margin), float(side_margin), mode), targets
 
 
