@@ -60,6 +60,16 @@ PopulationOption = Annotated[
     ),
 ]
 
+WorkersOption = Annotated[
+    int | None,
+    typer.Option(help="LocalCluster worker processes (default one per core; 0: in this process)."),
+]
+SchedulerOption = Annotated[
+    str | None, typer.Option(help="Address of a running dask scheduler, e.g. tcp://host:8786.")
+]
+ForceOption = Annotated[
+    bool, typer.Option(help="Start afresh if OUT's store holds this study with other settings.")
+]
 _CT_HELP = "CT in HU: a DICOM series folder, NIfTI, NRRD or MHA."
 SeriesOption = Annotated[
     str | None,
@@ -310,8 +320,14 @@ def study_registration(
     cases: Annotated[int, typer.Option(help="Number of simulated cases.")] = 20,
     dof: Annotated[int, typer.Option(help="6 (two views, P known) or 9 (one view).")] = 6,
     seed: Annotated[int, typer.Option(help="Seed of the study.")] = 0,
+    workers: WorkersOption = None,
+    scheduler: SchedulerOption = None,
+    force: ForceOption = False,
 ) -> None:
-    """Registration accuracy on simulated cases (in-/out-of-plane error per bone, PDE for 9 DoF)."""
+    """Registration accuracy on simulated cases (in-/out-of-plane error per bone, PDE for 9 DoF).
+
+    Runs on dask.distributed (a LocalCluster unless --scheduler); every finished case is stored in
+    OUT/store.sqlite at once, and a re-run skips what is stored."""
     from rich.console import Console
     from rich.progress import Progress
 
@@ -332,14 +348,15 @@ def study_registration(
         with Progress() as bar:
             task = bar.add_task("cases", total=cases)
             rows = run_registration_study(
-                a, out, settings, progress=lambda done, total: bar.update(task, completed=done)
-            )
+                a, out, settings, workers=workers, scheduler=scheduler, force=force,
+                progress=lambda done, total: bar.update(task, completed=done),
+            )  # fmt: skip
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
     console = Console()
     for row in summarise(rows):
         console.print(row)
-    console.print(f"wrote {out / 'cases.csv'}, {out / 'summary.csv'}")
+    console.print(f"wrote {out / 'results.csv'}, {out / 'summary.csv'} ({out / 'store.sqlite'})")
 
 
 @study_app.command("ssm-reference")

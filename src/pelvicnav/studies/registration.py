@@ -31,8 +31,15 @@ from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.atlas import Atlas
 from pelvicnav.io.atomic import write_text
+from pelvicnav.studies.runner import Study, flatten, run_study
 
-__all__ = ["RegistrationStudySettings", "run_registration_study", "simulate_registration_case"]
+__all__ = [
+    "RegistrationStudySettings",
+    "registration_study",
+    "run_registration_case",
+    "run_registration_study",
+    "simulate_registration_case",
+]
 
 
 @dataclass(frozen=True)
@@ -147,6 +154,56 @@ def _errors(case, result) -> list[dict]:
     return rows
 
 
+def registration_study(atlas: Atlas, settings: RegistrationStudySettings | None = None,
+                       registration=None) -> Study:  # fmt: skip
+    """The study as the runner takes it: one self-contained case per simulated patient (the
+    subject's meshes travel with the case, so workers need no atlas)."""
+    from pelvicnav.register.multibody import RegistrationSettings
+
+    cfg = settings or RegistrationStudySettings()
+    if cfg.dof == 9 and len(cfg.views) != 1:
+        cfg = replace(cfg, views=cfg.views[:1])
+    reg = registration or RegistrationSettings(dof=cfg.dof)
+    cases = []
+    for i in range(cfg.n_cases):
+        s = i % atlas.n_subjects
+        cases.append({
+            "case_id": f"{i:04d}", "index": i, "subject": int(atlas.subject_ids[s]),
+            "vertices": atlas.vertices[s], "faces": atlas.faces, "seed": cfg.seed * 1000 + i,
+            "registration_seed": cfg.seed + i, "settings": cfg, "registration": reg,
+        })  # fmt: skip
+    meta = {"study": asdict(cfg), "registration": asdict(reg), "population": atlas.source,
+            "subjects": [int(x) for x in atlas.subject_ids]}  # fmt: skip
+    return Study("registration", meta, tuple(cases), run_registration_case)
+
+
+def run_registration_case(case: dict) -> list[dict]:
+    """Simulate one case and register it; one row per bone."""
+    from pelvicnav.register.multibody import register_multibody
+
+    t0 = time.perf_counter()
+    sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
+                                     settings=case["settings"])  # fmt: skip
+    t_sim = time.perf_counter() - t0
+    res = register_multibody(
+        sim["ct"], sim["labels"], sim["views"], seed=case["registration_seed"],
+        settings=case["registration"], dislocated=sim["bone"],  # known from the plan
+    )  # fmt: skip
+    rows = []
+    for r in _errors(sim, res):
+        rows.append({
+            "case": case["index"], "subject": case["subject"], **r,
+            "dislocation_mm": sim["dislocation"][0], "dislocation_deg": sim["dislocation"][1],
+            "converged": res.converged,
+            "restart_disagreement_mm": res.restart_disagreement.get(r["bone"], ""),
+            "warnings": "; ".join(res.warnings), "similarity": res.similarity,
+            "seconds": res.seconds, "stage1_s": res.stages[0].seconds,
+            "stage2_s": res.stages[1].seconds if len(res.stages) > 1 else 0.0,
+            "simulation_s": t_sim,
+        })  # fmt: skip
+    return rows
+
+
 def run_registration_study(
     atlas: Atlas,
     out: str | os.PathLike,
@@ -154,49 +211,20 @@ def run_registration_study(
     *,
     registration=None,
     progress: Callable[[int, int], None] | None = None,
+    workers: int | None = 0,
+    scheduler: str | None = None,
+    force: bool = False,
 ) -> list[dict]:
-    """Simulate and register ``n_cases`` cases; write cases.csv, summary.csv, settings.json."""
-    from pelvicnav.register.multibody import RegistrationSettings, register_multibody
-
-    cfg = settings or RegistrationStudySettings()
-    reg = registration or RegistrationSettings(dof=cfg.dof)
-    if cfg.dof == 9 and len(cfg.views) != 1:
-        cfg = replace(cfg, views=cfg.views[:1])
+    """Simulate and register the cases on the study runner; write ``store.sqlite``,
+    ``results.csv`` (one row per bone, a ``case_id`` column), ``summary.csv``, ``settings.json``.
+    ``workers=0`` (the default here) runs in this process; None is one worker per core."""
+    study = registration_study(atlas, settings, registration)
+    results = run_study(study, out, scheduler=scheduler, workers=workers, force=force,
+                        progress=progress)  # fmt: skip
+    rows = flatten(results)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for i in range(cfg.n_cases):
-        s = i % atlas.n_subjects
-        t0 = time.perf_counter()
-        case = simulate_registration_case(
-            atlas.vertices[s], atlas.faces, seed=cfg.seed * 1000 + i, settings=cfg
-        )
-        t_sim = time.perf_counter() - t0
-        res = register_multibody(
-            case["ct"], case["labels"], case["views"], seed=cfg.seed + i, settings=reg,
-            dislocated=case["bone"],  # known from the plan
-        )  # fmt: skip
-        for r in _errors(case, res):
-            rows.append(
-                {
-                    "case": i,
-                    "subject": atlas.subject_ids[s],
-                    **r,
-                    "dislocation_mm": case["dislocation"][0],
-                    "dislocation_deg": case["dislocation"][1],
-                    "converged": res.converged,
-                    "restart_disagreement_mm": res.restart_disagreement.get(r["bone"], ""),
-                    "warnings": "; ".join(res.warnings),
-                    "similarity": res.similarity,
-                    "seconds": res.seconds,
-                    "stage1_s": res.stages[0].seconds,
-                    "stage2_s": res.stages[1].seconds if len(res.stages) > 1 else 0.0,
-                    "simulation_s": t_sim,
-                }
-            )
-        _write(out, rows, cfg, reg)
-        if progress:
-            progress(i + 1, cfg.n_cases)
+    write_text(out / "summary.csv", _csv(summarise(rows)))
+    write_text(out / "settings.json", json.dumps(study.settings, indent=2, default=str))
     return rows
 
 
@@ -226,12 +254,3 @@ def _csv(rows: list[dict]) -> str:
     w.writeheader()
     w.writerows(rows)
     return buf.getvalue()
-
-
-def _write(out: Path, rows, cfg, reg) -> None:
-    write_text(out / "cases.csv", _csv(rows))
-    write_text(out / "summary.csv", _csv(summarise(rows)))
-    write_text(
-        out / "settings.json",
-        json.dumps({"study": asdict(cfg), "registration": asdict(reg)}, indent=2),
-    )
