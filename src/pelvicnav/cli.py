@@ -359,6 +359,43 @@ def study_registration(
     console.print(f"wrote {out / 'results.csv'}, {out / 'summary.csv'} ({out / 'store.sqlite'})")
 
 
+@study_app.command("capture-range")
+def study_capture_range(
+    out: Annotated[Path, typer.Option(help="Output folder (created).")],
+    atlas: PopulationOption = None,
+    quick: Annotated[
+        bool, typer.Option(help="Two offsets per axis, one case each (for CI).")
+    ] = False,
+    seed: Annotated[int, typer.Option(help="Seed of the simulated patients.")] = 0,
+    workers: WorkersOption = None,
+    scheduler: SchedulerOption = None,
+    force: ForceOption = False,
+) -> None:
+    """Capture range (figure 7): success against the initial offset along each C-arm axis."""
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from pelvicnav.io.atlas import AtlasNotFoundError
+    from pelvicnav.studies.capture_range import CaptureRangeSettings, run_capture_range_study
+
+    settings = CaptureRangeSettings.quick(seed) if quick else CaptureRangeSettings(seed=seed)
+    try:
+        population = _population(atlas)
+        with Progress() as bar:
+            task = bar.add_task("cases", total=None)
+            summary = run_capture_range_study(
+                population, out, settings, workers=workers, scheduler=scheduler, force=force,
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
+            )  # fmt: skip
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    console = Console()
+    for axis, s in summary.items():
+        unit = "deg" if axis.startswith("r") else "mm"
+        console.print(f"{axis}: capture range ±{s['capture']:g} {unit}")
+    console.print(f"wrote {out / 'results.csv'}, {out / 'summary.md'}, {out / 'capture_range.png'}")
+
+
 @study_app.command("ssm-reference")
 def study_ssm_reference(atlas: AtlasOption = None) -> None:
     """Compare our per-bone SSMs with the statismo models shipped with the atlas."""

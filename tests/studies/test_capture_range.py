@@ -1,0 +1,35 @@
+"""Capture-range study: its cases, and the capture range read from success rates."""
+
+from __future__ import annotations
+
+from pelvicnav.phantom.population import load_population
+from pelvicnav.studies.capture_range import (
+    AXES,
+    CaptureRangeSettings,
+    capture_range_study,
+    summarise_capture,
+)
+
+
+def test_cases_cover_every_axis_offset_and_repeat():
+    pop = load_population("procedural", n_subjects=2)
+    cfg = CaptureRangeSettings(translations=(-50, 50, 100), rotations=(-20, 20), repeats=2)
+    study = capture_range_study(pop, cfg)
+    assert len(study.cases) == 3 * 3 * 2 + 3 * 2 * 2
+    assert {c["axis"] for c in study.cases} == set(AXES)
+    # repeat r is patient r, whatever the offset: offsets of one repeat share a simulation
+    assert {c["seed"] for c in study.cases if c["repeat"] == 1} == {1}
+    assert len(CaptureRangeSettings.quick().translations) == 2
+
+
+def test_capture_range_is_the_largest_offset_passed_on_both_sides():
+    cfg = CaptureRangeSettings(success_rate=0.5)
+    rows = []
+    for off, ok in ((-100, False), (-50, True), (-25, True), (25, True), (50, True), (100, True)):
+        rows.append({"axis": "x", "offset": float(off), "success": ok})
+    for off, ok in ((-20, True), (20, False), (-10, True), (10, True)):
+        rows.append({"axis": "rz", "offset": float(off), "success": ok})
+    s = summarise_capture(rows, cfg)
+    assert s["x"]["capture"] == 50.0  # -100 failed
+    assert s["rz"]["capture"] == 10.0
+    assert s["y"]["capture"] == 0.0 and s["y"]["rates"] == {}
