@@ -148,11 +148,17 @@ def _execute(run_case, todo: list[dict], scheduler, workers):
         for case in todo:
             yield _run_one(run_case, case)
         return
+    import warnings
+
     from distributed import as_completed
 
     client = _client(scheduler, workers)
     try:
-        futures = client.map(_run_one, [run_case] * len(todo), todo, pure=False)
+        with warnings.catch_warnings():
+            # Cases carry their subject's meshes by design (workers need no atlas): tens of MB
+            # for a study, which dask warns about. It is sent once, so the warning is noise.
+            warnings.filterwarnings("ignore", message="Sending large graph")
+            futures = client.map(_run_one, [run_case] * len(todo), todo, pure=False)
         for future in as_completed(futures):
             yield future.result()
     finally:
