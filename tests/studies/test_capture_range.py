@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from pelvicnav.phantom.population import load_population
+from types import SimpleNamespace
+
+import numpy as np
+
 from pelvicnav.studies.capture_range import (
     AXES,
     CaptureRangeSettings,
@@ -12,7 +15,8 @@ from pelvicnav.studies.capture_range import (
 
 
 def test_cases_cover_every_axis_offset_and_repeat():
-    pop = load_population("procedural", n_subjects=2)
+    pop = SimpleNamespace(n_subjects=2, subject_ids=(7, 9), source="test",
+                          vertices=np.zeros((2, 3, 4, 3)), faces=())  # fmt: skip
     cfg = CaptureRangeSettings(translations=(-50, 50, 100), rotations=(-20, 20), repeats=2)
     study = capture_range_study(pop, cfg)
     assert len(study.cases) == 3 * 3 * 2 + 3 * 2 * 2

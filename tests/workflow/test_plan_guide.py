@@ -148,17 +148,19 @@ def _report(folder):
 
 @pytest.mark.slow
 def test_guide_refuses_a_plan_of_another_ct(case, tmp_path):
+    """The plan's CT path now holds another CT: the fingerprint refuses it."""
     from pelvicnav.io.nifti import read_nifti, write_nifti
+    from pelvicnav.io.plan import CTReference, Plan, write_plan
 
     root, _ = case
     ct = tmp_path / "ct.nii.gz"
     shutil.copyfile(root / "case" / "ct.nii.gz", ct)
     plan_dir = tmp_path / "plan"
-    res = runner.invoke(app, ["plan", str(ct), "--labels", str(root / "case" / "labels.nii.gz"),
-                              "--out", str(plan_dir), "--dislocated", "left_hip"])  # fmt: skip
-    assert res.exit_code == 0, res.output
-    assert json.loads((plan_dir / "plan.json").read_text())["decision"]["mode"] == "given"
+    plan_dir.mkdir()
+    shutil.copyfile(root / "case" / "labels.nii.gz", plan_dir / "labels.nii.gz")
     data, A = read_nifti(ct)
+    write_plan(plan_dir, Plan(ct=CTReference.of(ct, data, A), dislocated=("left_hip",),
+                              targets={"left_hip": np.eye(4)}))  # fmt: skip
     data[10, 10, 10] += 100  # CT B where CT A was
     write_nifti(ct, data, A)
     res = runner.invoke(app, ["guide", str(plan_dir), "--views", str(root / "case" / "views.json"),
