@@ -70,6 +70,10 @@ SchedulerOption = Annotated[
 ForceOption = Annotated[
     bool, typer.Option(help="Start afresh if OUT's store holds this study with other settings.")
 ]
+ModelOption = Annotated[
+    Path | None,
+    typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
+]
 _CT_HELP = "CT in HU: a DICOM series folder, NIfTI, NRRD or MHA."
 SeriesOption = Annotated[
     str | None,
@@ -450,10 +454,7 @@ def model_build(
 
 @model_app.command("info")
 def model_info(
-    model: Annotated[
-        Path | None,
-        typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
-    ] = None,
+    model: ModelOption = None,
 ) -> None:
     """Print the pelvis model's provenance and sizes."""
     from rich.console import Console
@@ -486,10 +487,7 @@ def segment(
         Path | None, typer.Option(help="Existing label map to fit the model to (same grid).")
     ] = None,
     label_scheme: LabelSchemeOption = "ours",
-    model: Annotated[
-        Path | None,
-        typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
-    ] = None,
+    model: ModelOption = None,
     series: SeriesOption = None,
 ) -> None:
     """Bones of a CT as corresponded meshes (VTK, STL) and a label map, with contours."""
@@ -530,10 +528,7 @@ def plan_command(
     dislocated: Annotated[
         str, typer.Option(help="auto, left_hip, right_hip, both or none.")
     ] = "auto",
-    model: Annotated[
-        Path | None,
-        typer.Option("--model", help="Model file (default: $PELVICNAV_MODEL, then packaged)."),
-    ] = None,
+    model: ModelOption = None,
     series: SeriesOption = None,
 ) -> None:
     """Plan the reduction: the bones of the CT, which one is dislocated, and its target."""

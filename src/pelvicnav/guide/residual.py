@@ -51,6 +51,17 @@ class Residual:
     def angle_deg(self) -> float:
         return float(np.linalg.norm(self.rotation_deg))
 
+    def to_json(self) -> dict:
+        """The residual as ``result.json`` and ``plan.json`` record it."""
+        return {
+            "translation_mm": self.translation_mm.tolist(),
+            "rotation_deg": self.rotation_deg.tolist(),
+            "distance_mm": self.distance_mm,
+            "angle_deg": self.angle_deg,
+            "description": self.describe(),
+            "world_transform": np.asarray(self.transform).tolist(),
+        }
+
     def describe(self) -> str:
         """A sentence for the surgeon, e.g. ``move 4.0 mm left, 1.5 mm superior; rotate ...``."""
         moves = [

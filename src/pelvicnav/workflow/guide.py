@@ -202,10 +202,7 @@ def _residuals(result, plan, labels, A) -> dict:
         ijk = np.argwhere(labels == LABELS[bone]).mean(axis=0)
         centroid = A[:3, :3] @ ijk + A[:3, 3]
         r = residual_reduction(result.poses[plan.reference_bone], result.poses[bone], T, centroid)
-        out[bone] = {"translation_mm": r.translation_mm.tolist(),
-                     "rotation_deg": r.rotation_deg.tolist(), "distance_mm": r.distance_mm,
-                     "angle_deg": r.angle_deg, "description": r.describe(),
-                     "world_transform": r.transform.tolist()}  # fmt: skip
+        out[bone] = r.to_json()
     return out
 
 

@@ -168,12 +168,10 @@ def make_plan(
     ValueError
         No label map (the ASM is not there yet), unreadable or implausible inputs.
     """
-    from pelvicnav.geometry import transforms as tf
+    from pelvicnav.guide.residual import residual_reduction
     from pelvicnav.io.plan import CTReference, Plan
-    from pelvicnav.io.volume import read_ct, read_labels
     from pelvicnav.model import load_model
-    from pelvicnav.shape.fit import fit_labels
-    from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
+    from pelvicnav.workflow.inputs import fit_bones, read_ct_and_bones
 
     say = progress or (lambda step: None)
     if labels is None:
@@ -187,26 +185,17 @@ def make_plan(
         )
     started = time.perf_counter()
     say("reading")
-    hu, A = read_ct(ct, series=series)
-    raw = read_labels(labels, hu.shape, A)
-    ours = to_bone_labels(raw, parse_scheme(label_scheme))
-    check_bone_labels(hu, ours, A, source=str(labels), raw_labels=raw)
+    hu, A, _, ours = read_ct_and_bones(ct, labels, label_scheme, series)
     model = model or load_model()
     say("fitting the pelvis model")
-    pop = model.population
-    reference = tf.apply(pop.poses_from_vector(pop.mean), pop.mean_shapes)
-    fits = fit_labels(ours, A, model.shapes, model.faces, reference)
+    fits = fit_bones(ours, A, model)
     meshes = {b: fits[b].vertices for b in BONES}
     say("planning the target")
     decision, targets = decide_dislocated(meshes, model, dislocated)
     residual = {}
     for bone, T in targets.items():
-        from pelvicnav.guide.residual import residual_reduction
-
         r = residual_reduction(np.eye(4), np.eye(4), T, meshes[bone].mean(axis=0))
-        residual[bone] = {"translation_mm": r.translation_mm.tolist(),
-                          "rotation_deg": r.rotation_deg.tolist(), "distance_mm": r.distance_mm,
-                          "angle_deg": r.angle_deg, "description": r.describe()}  # fmt: skip
+        residual[bone] = r.to_json()
     mesh_files = {b: f"meshes/{b}.vtk" for b in BONES} | {
         f"{b}_target": f"meshes/{b}_target.vtk" for b in targets
     }

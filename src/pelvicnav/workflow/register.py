@@ -72,23 +72,19 @@ def register_files(
     from pelvicnav.io.atomic import write_text
     from pelvicnav.io.itk_transform import write_pose_transforms
     from pelvicnav.io.views import read_views
-    from pelvicnav.io.volume import read_ct, read_labels
     from pelvicnav.register.multibody import (
         RegistrationSettings,
         RegistrationViews,
         level_models,
         register_multibody,
     )
-    from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
+    from pelvicnav.workflow.inputs import read_ct_and_bones
 
     if dof not in (6, 9):
         raise ValueError(f"--dof must be 6 or 9, got {dof}")
     the_plan = read_register_plan(plan) if plan is not None else None
     vs, _ = read_views(views)
-    data, affine = read_ct(ct, series=series)
-    raw = read_labels(labels, data.shape, affine)
-    lab = to_bone_labels(raw, parse_scheme(label_scheme))
-    check_bone_labels(data, lab, affine, source=str(labels), raw_labels=raw)
+    data, affine, _, lab = read_ct_and_bones(ct, labels, label_scheme, series)
     rv = RegistrationViews(tuple(v.image for v in vs), tuple(v.projection_matrix for v in vs),
                            tuple(tuple(v.pixel_spacing) for v in vs))  # fmt: skip
     settings = RegistrationSettings(dof=dof)
@@ -122,11 +118,4 @@ def _residual(result, plan: dict, volume, labels) -> dict:
     res = residual_reduction(
         result.poses[ref], result.poses[bone], plan["target_from_current"], centroid
     )
-    return {
-        "bone": bone,
-        "reference_bone": ref,
-        "world_transform": np.asarray(res.transform).tolist(),
-        "distance_mm": res.distance_mm,
-        "angle_deg": res.angle_deg,
-        "description": res.describe(),
-    }
+    return {"bone": bone, "reference_bone": ref, **res.to_json()}

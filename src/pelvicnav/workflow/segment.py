@@ -45,12 +45,9 @@ def segment(
         a bad scheme, or a map whose bones are not bone (see
         :func:`pelvicnav.shape.labels.check_bone_labels`); nothing is written then.
     """
-    from pelvicnav.geometry import transforms as tf
-    from pelvicnav.io.volume import read_ct, read_labels
     from pelvicnav.model import load_model
     from pelvicnav.phantom.ctsynth import bone_labels
-    from pelvicnav.shape.fit import fit_labels
-    from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
+    from pelvicnav.workflow.inputs import fit_bones, read_ct_and_bones
 
     if labels is None:
         raise ValueError(
@@ -58,16 +55,10 @@ def segment(
             "pass --labels with an existing label map (ours or TotalSegmentator's)"
         )
     started = time.perf_counter()
-    scheme = parse_scheme(label_scheme)
-    hu, world_from_ijk = read_ct(ct, series=series)
-    raw = read_labels(labels, hu.shape, world_from_ijk)
-    ours = to_bone_labels(raw, scheme)
-    check_bone_labels(hu, ours, world_from_ijk, source=str(labels), raw_labels=raw)
+    hu, world_from_ijk, _, ours = read_ct_and_bones(ct, labels, label_scheme, series)
     model = model or load_model()
-    pop = model.population
-    reference = tf.apply(pop.poses_from_vector(pop.mean), pop.mean_shapes)
     read_s = time.perf_counter() - started
-    fits = fit_labels(ours, world_from_ijk, model.shapes, model.faces, reference)
+    fits = fit_bones(ours, world_from_ijk, model)
     fit_s = time.perf_counter() - started - read_s
     fitted = bone_labels(
         np.stack([fits[b].vertices for b in BONES]), model.faces, hu.shape, world_from_ijk
