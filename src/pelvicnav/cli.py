@@ -484,37 +484,63 @@ def segment(
     ct: Annotated[Path, typer.Argument(help=_CT_HELP)],
     out: Annotated[Path, typer.Option(help="Output folder.")],
     labels: Annotated[
-        Path | None, typer.Option(help="Existing label map to fit the model to (same grid).")
-    ] = None,
+        Path | None,
+        typer.Option(help="Existing label map to fit the model to (same grid); default: the "
+                     "active shape model segments the CT."),
+    ] = None,  # fmt: skip
     label_scheme: LabelSchemeOption = "ours",
     model: ModelOption = None,
+    atlas: Annotated[
+        Path | None,
+        typer.Option(help="Fit the shape models from this atlas folder instead of the model."),
+    ] = None,
     series: SeriesOption = None,
 ) -> None:
     """Bones of a CT as corresponded meshes (VTK, STL) and a label map, with contours."""
     from rich.console import Console
+    from rich.progress import Progress
 
+    from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.model import load_model
     from pelvicnav.workflow.segment import segment as run_segment
 
     console = Console()
+    steps = ["reading", "pyramid", "initialisation", "profile search", "free-form refinement",
+             "label map"] if labels is None else ["reading", "fitting the model to the labels"]  # fmt: skip
     try:
-        with console.status(f"fitting the pelvis model to {labels}"):
+        if model is not None and atlas is not None:
+            raise ValueError("give --model or --atlas, not both")
+        prior = _atlas_prior(atlas) if atlas is not None else None
+        with Progress(console=console) as bar:
+            task = bar.add_task("segmenting", total=len(steps) + 1)
+
+            def step(name: str) -> None:
+                done = next((k for k, s in enumerate(steps) if name.startswith(s)), 0)
+                bar.update(task, completed=done, description=name)
+
             record = run_segment(
-                ct,
-                out,
-                labels=labels,
-                label_scheme=label_scheme,
-                model=load_model(model),
-                series=series,
-            )
-    except (FileNotFoundError, ValueError) as err:
+                ct, out, labels=labels, label_scheme=label_scheme,
+                model=None if prior is not None else load_model(model), prior=prior,
+                series=series, progress=step,
+            )  # fmt: skip
+            bar.update(task, completed=len(steps) + 1, description="written")
+    except (FileNotFoundError, ValueError, AtlasNotFoundError) as err:
         raise _fail(str(err)) from None
     for bone, r in record["bones"].items():
-        console.print(
-            f"{bone}: Dice {r['dice_fitted_vs_labels']:.3f} against the labels, "
-            f"RMS {r['rms_mm']:.2f} mm"
-        )
-    console.print(f"wrote {out} ({record['seconds']['fit']:.1f} s fitting)")
+        extra = (f"edge RMS {r['edge_rms_mm']:.2f} mm, edges found at {r['edge_fraction']:.0%}"
+                 if "edge_rms_mm" in r else f"RMS {r['rms_mm']:.2f} mm")  # fmt: skip
+        console.print(f"{bone}: {r['voxels']} voxels, {extra}")
+    total = sum(record["seconds"].values()) - record["seconds"].get("total", 0.0)
+    console.print(f"wrote {out} ({total:.1f} s)")
+
+
+def _atlas_prior(atlas: Path):
+    """A shape prior fitted from an atlas folder (all its subjects)."""
+    from pelvicnav.io.atlas import load_atlas
+    from pelvicnav.shape.asm import ShapePrior
+
+    a = load_atlas(atlas)
+    return ShapePrior.from_subjects(a.vertices, a.faces)
 
 
 @app.command("plan")

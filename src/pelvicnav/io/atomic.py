@@ -10,7 +10,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_directory", "save_figure", "write_text"]
+__all__ = ["atomic_directory", "save_figure", "write_bytes", "write_text"]
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
@@ -18,6 +18,15 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
     tmp.write_text(text)
+    os.replace(tmp, path)
+    return path
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_bytes(data)
     os.replace(tmp, path)
     return path
 

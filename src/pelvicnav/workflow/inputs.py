@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import os
 
+from dataclasses import dataclass, field
+
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["fit_bones", "read_ct_and_bones"]
+__all__ = ["BoneInputs", "bones_of_ct", "fit_bones", "read_ct_and_bones"]
 
 
 def read_ct_and_bones(
@@ -42,3 +44,81 @@ def fit_bones(ours: NDArray, world_from_ijk: NDArray, model) -> dict:
     pop = model.population
     reference = tf.apply(pop.poses_from_vector(pop.mean), pop.mean_shapes)
     return fit_labels(ours, world_from_ijk, model.shapes, model.faces, reference)
+
+
+@dataclass(frozen=True, eq=False)
+class BoneInputs:
+    """A CT and its three bones, from a label map or segmented.
+
+    Attributes
+    ----------
+    hu : (ni, nj, nk) array, HU
+    world_from_ijk : (4, 4) float64
+    labels : (ni, nj, nk) uint8
+        Ours (1 sacrum, 2 left hip, 3 right hip): the given map relabelled, or the ASM's.
+    meshes : dict bone -> (n_vertices, 3) float64
+        In the model's correspondence (world mm).
+    method : str
+    quality : dict bone -> dict
+    seconds : dict
+    """
+
+    hu: NDArray
+    world_from_ijk: NDArray[np.float64]
+    labels: NDArray[np.uint8]
+    meshes: dict[str, NDArray[np.float64]]
+    method: str
+    quality: dict[str, dict] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def bones_of_ct(
+    ct: str | os.PathLike,
+    labels: str | os.PathLike | None,
+    *,
+    label_scheme: str = "ours",
+    series: str | None = None,
+    model=None,
+    prior=None,
+    progress=None,
+) -> BoneInputs:
+    """Read a CT and get its bones: the model fitted to ``labels`` when given, else segmented by
+    the active shape model (:func:`pelvicnav.shape.asm.segment_ct`, ``prior`` or the model's).
+
+    Raises
+    ------
+    ValueError
+        Unreadable or implausible inputs (naming the file), a CT on which the ASM finds no bone.
+    """
+    import time
+
+    from pelvicnav import BONES
+    from pelvicnav.io.volume import read_ct
+    from pelvicnav.model import load_model
+
+    say = progress or (lambda _: None)
+    started = time.perf_counter()
+    if labels is not None:
+        say("reading")
+        hu, A, _, ours = read_ct_and_bones(ct, labels, label_scheme, series)
+        read_s = time.perf_counter() - started
+        say("fitting the model to the labels")
+        fits = fit_bones(ours, A, model or load_model())
+        quality = {b: {"rms_mm": fits[b].rms_mm} for b in BONES}
+        return BoneInputs(hu, A, ours, {b: fits[b].vertices for b in BONES},
+                          "pelvis model fitted to the label map (shape.fit.fit_labels)", quality,
+                          {"read": read_s, "fit": time.perf_counter() - started - read_s})  # fmt: skip
+    from pelvicnav.shape.asm import ShapePrior, segment_ct
+
+    say("reading")
+    hu, A = read_ct(ct, series=series)
+    read_s = time.perf_counter() - started
+    prior = prior or ShapePrior.from_model(model or load_model())
+    try:
+        res = segment_ct(hu, A, prior, progress=say)
+    except ValueError as err:
+        raise ValueError(f"{ct}: {err}") from None
+    meshes = {b: res.vertices[i] for i, b in enumerate(BONES)}
+    return BoneInputs(hu, A, res.labels, meshes,
+                      "multi-resolution active shape model on the CT (shape.asm.segment_ct)",
+                      res.quality, {"read": read_s, **res.seconds})  # fmt: skip

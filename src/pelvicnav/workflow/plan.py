@@ -1,9 +1,9 @@
-"""``pelvicnav plan``: from a CT (and its bone labels) to a reduction plan.
+"""``pelvicnav plan``: from a CT (and, optionally, its bone labels) to a reduction plan.
 
-1. The CT and the label map are read and checked (:mod:`pelvicnav.io.volume`,
-   :func:`pelvicnav.shape.labels.check_bone_labels`); the ASM on the CT alone is not there yet,
-   so the labels are required.
-2. The pelvis model is fitted to the labels: each bone as a mesh in the model's correspondence.
+1. The CT (and a label map, when given) are read and checked (:mod:`pelvicnav.io.volume`,
+   :func:`pelvicnav.shape.labels.check_bone_labels`).
+2. The bones as meshes in the model's correspondence: the model fitted to the labels, or, with
+   no labels, segmented by the active shape model (:func:`pelvicnav.shape.asm.segment_ct`).
 3. Which innominate is dislocated: given, or ``auto`` — each hip's target is predicted from the
    sacrum and the other hip (SPM_CC); the hip that sits further from where the others put it,
    by more than :data:`DISLOCATION_THRESHOLD` (mm at its centroid plus degrees), is the dislocated
@@ -166,30 +166,23 @@ def make_plan(
     Raises
     ------
     ValueError
-        No label map (the ASM is not there yet), unreadable or implausible inputs.
+        Unreadable or implausible inputs, a CT on which the ASM finds no bone.
     """
     from pelvicnav.guide.residual import residual_reduction
     from pelvicnav.io.plan import CTReference, Plan
     from pelvicnav.model import load_model
-    from pelvicnav.workflow.inputs import fit_bones, read_ct_and_bones
+    from pelvicnav.workflow.inputs import bones_of_ct
 
     say = progress or (lambda step: None)
-    if labels is None:
-        raise ValueError(
-            "planning from the CT alone needs the active shape model, which is not there yet: "
-            "pass --labels with a label map (ours or TotalSegmentator's)"
-        )
     if dislocated not in ("auto", "left_hip", "right_hip", "both", "none"):
         raise ValueError(
             f"--dislocated must be auto, left_hip, right_hip, both or none, got {dislocated!r}"
         )
     started = time.perf_counter()
-    say("reading")
-    hu, A, _, ours = read_ct_and_bones(ct, labels, label_scheme, series)
     model = model or load_model()
-    say("fitting the pelvis model")
-    fits = fit_bones(ours, A, model)
-    meshes = {b: fits[b].vertices for b in BONES}
+    bones = bones_of_ct(ct, labels, label_scheme=label_scheme, series=series, model=model,
+                        progress=say)  # fmt: skip
+    hu, A, ours, meshes = bones.hu, bones.world_from_ijk, bones.labels, bones.meshes
     say("planning the target")
     decision, targets = decide_dislocated(meshes, model, dislocated)
     residual = {}
@@ -202,8 +195,8 @@ def make_plan(
     plan = Plan(
         ct=CTReference.of(ct, hu, A), dislocated=decision.dislocated, targets=targets,
         decision=decision.to_json(), residual_in_ct=residual,
-        method="pelvis model fitted to the label map; targets by SPM_CC from the undislocated "
-        "bones (Han et al. 2020, section 2.1.2)",
+        method=f"bones: {bones.method}; targets by SPM_CC from the undislocated bones "
+        "(Han et al. 2020, section 2.1.2)",
         model={k: model.provenance.get(k) for k in ("doi", "licence", "note", "created")},
         meshes=mesh_files, created=datetime.datetime.now().isoformat(timespec="seconds"),
     )  # fmt: skip
@@ -218,7 +211,7 @@ def _write(out: Path, plan, hu, A, ours, meshes, model, seconds: float) -> None:
     from pelvicnav.io.mesh_files import write_meshes
     from pelvicnav.io.nifti import write_nifti
     from pelvicnav.io.plan import write_plan
-    from pelvicnav.phantom.ctsynth import bone_labels
+    from pelvicnav.shape.voxelize import inside_mask
     from pelvicnav.workflow.segment import write_contours
 
     faces = dict(zip(BONES, model.faces, strict=True))
@@ -233,7 +226,9 @@ def _write(out: Path, plan, hu, A, ours, meshes, model, seconds: float) -> None:
                          formats=("vtk", "stl"), title=f"pelvicnav {b} target")  # fmt: skip
         reduced = _reduced_ct(hu, A, ours, meshes, faces, plan.targets)
         write_nifti(tmp / "reduced_ct.nii.gz", reduced, A)
-        fitted = bone_labels(np.stack([meshes[b] for b in BONES]), model.faces, hu.shape, A)
+        fitted = np.zeros(hu.shape, dtype=np.uint8)
+        for k, b in enumerate(BONES):
+            fitted[inside_mask(meshes[b], faces[b], A, hu.shape) & (fitted == 0)] = k + 1
         write_contours(hu, ours, fitted, A, tmp / "contours.png")
         _rendering(meshes, faces, plan, tmp / "rendering.png")
         write_plan(tmp, plan)

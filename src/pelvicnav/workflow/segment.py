@@ -1,8 +1,8 @@
 """``pelvicnav segment``: the bones of a CT as corresponded meshes and a label map.
 
 With a label map (ours, TotalSegmentator's or a mapping), the pelvis model is fitted to it
-(:func:`pelvicnav.shape.fit.fit_labels`). The active shape model on the CT alone (issue 12) is
-not there yet; asking for it is an error that says so.
+(:func:`pelvicnav.shape.fit.fit_labels`); without one, the multi-resolution active shape model
+segments the CT (:func:`pelvicnav.shape.asm.segment_ct`).
 
 Outputs in ``out`` (written to a temporary sibling folder and moved into place only when all of
 them succeeded): ``labels.nii.gz`` (ours, on the CT's grid), ``{bone}.vtk``, ``.stl`` and ``.ply``
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,78 +30,83 @@ def segment(
     labels: str | os.PathLike | None = None,
     label_scheme: str = "ours",
     model=None,
+    prior=None,
     series: str | None = None,
+    progress=None,
 ) -> dict:
-    """Segment (fit) the three bones of a CT and write them to ``out``; returns the record.
+    """Segment (or fit) the three bones of a CT and write them to ``out``; returns the record.
 
     ``ct`` and ``labels`` are any volume :func:`pelvicnav.io.volume.read_volume` reads (a DICOM
-    series folder, ``series`` choosing among several, NIfTI, NRRD, MetaImage).
+    series folder, ``series`` choosing among several, NIfTI, NRRD, MetaImage). Without
+    ``labels`` the active shape model segments the CT (``prior``: a
+    :class:`~pelvicnav.shape.asm.ShapePrior`, default the model's).
 
     Raises
     ------
     ValueError
-        No label map (the ASM is not available yet), unreadable files, labels on another grid,
-        a bad scheme, or a map whose bones are not bone (see
-        :func:`pelvicnav.shape.labels.check_bone_labels`); nothing is written then.
+        Unreadable files, labels on another grid, a bad scheme, a map whose bones are not bone
+        (see :func:`pelvicnav.shape.labels.check_bone_labels`), a CT without bone; nothing is
+        written then.
     """
     from pelvicnav.model import load_model
-    from pelvicnav.phantom.ctsynth import bone_labels
-    from pelvicnav.workflow.inputs import fit_bones, read_ct_and_bones
+    from pelvicnav.shape.voxelize import inside_mask
+    from pelvicnav.workflow.inputs import bones_of_ct
 
-    if labels is None:
-        raise ValueError(
-            "segmentation from the CT alone (active shape model) is not available yet: "
-            "pass --labels with an existing label map (ours or TotalSegmentator's)"
-        )
-    started = time.perf_counter()
-    hu, world_from_ijk, _, ours = read_ct_and_bones(ct, labels, label_scheme, series)
-    model = model or load_model()
-    read_s = time.perf_counter() - started
-    fits = fit_bones(ours, world_from_ijk, model)
-    fit_s = time.perf_counter() - started - read_s
-    fitted = bone_labels(
-        np.stack([fits[b].vertices for b in BONES]), model.faces, hu.shape, world_from_ijk
-    )
+    model = model or (load_model() if prior is None else None)
+    bones = bones_of_ct(ct, labels, label_scheme=label_scheme, series=series, model=model,
+                        prior=prior, progress=progress)  # fmt: skip
+    faces = prior.faces if prior is not None else model.faces
+    fitted = np.zeros(bones.hu.shape, dtype=np.uint8)
+    for b, bone in enumerate(BONES):
+        inside = inside_mask(bones.meshes[bone], faces[b], bones.world_from_ijk, bones.hu.shape)
+        fitted[inside & (fitted == 0)] = b + 1
     record = {
         "ct": str(ct),
-        "labels": str(labels),
-        "label_scheme": label_scheme,
-        "method": "model fitted to the label map (shape.fit.fit_labels)",
+        "labels": None if labels is None else str(labels),
+        "label_scheme": label_scheme if labels is not None else None,
+        "method": bones.method,
         "bones": {
             bone: {
-                "rms_mm": fits[bone].rms_mm,
-                "dice_fitted_vs_labels": _dice(fitted == b + 1, ours == b + 1),
-                "voxels": int((ours == b + 1).sum()),
+                **bones.quality.get(bone, {}),
+                "dice_surface_vs_labels": _dice(fitted == b + 1, bones.labels == b + 1),
+                "voxels": int((bones.labels == b + 1).sum()),
             }
             for b, bone in enumerate(BONES)
         },
-        "seconds": {"read": read_s, "fit": fit_s},
-        "model": {k: model.provenance.get(k) for k in ("doi", "licence", "note", "created")},
+        "seconds": bones.seconds,
+        "model": _provenance(model, prior),
     }
-    _write(Path(out), hu, ours, fitted, world_from_ijk, model, fits, record)
+    _write(Path(out), bones, fitted, faces, record)
     return record
+
+
+def _provenance(model, prior) -> dict:
+    if model is not None:
+        return {k: model.provenance.get(k) for k in ("doi", "licence", "note", "created")}
+    return {"source": getattr(prior, "source", "shape prior fitted from an atlas"),
+            "doi": "10.1088/1361-6560/ab1456"}  # fmt: skip
 
 
 def _dice(a, b) -> float:
     return float(2 * np.sum(a & b) / max(np.sum(a) + np.sum(b), 1))
 
 
-def _write(out: Path, hu, ours, fitted, world_from_ijk, model, fits, record) -> None:
+def _write(out: Path, bones, fitted, faces, record) -> None:
     from pelvicnav.io.atomic import atomic_directory
     from pelvicnav.io.mesh_files import write_meshes
     from pelvicnav.io.nifti import write_nifti
 
     with atomic_directory(out) as tmp:
-        write_nifti(tmp / "labels.nii.gz", ours, world_from_ijk)
+        write_nifti(tmp / "labels.nii.gz", bones.labels, bones.world_from_ijk)
         for b, bone in enumerate(BONES):
-            write_meshes(tmp, bone, fits[bone].vertices, model.faces[b], title=f"pelvicnav {bone}")
-        write_contours(hu, ours, fitted, world_from_ijk, tmp / "contours.png")
+            write_meshes(tmp, bone, bones.meshes[bone], faces[b], title=f"pelvicnav {bone}")
+        write_contours(bones.hu, bones.labels, fitted, bones.world_from_ijk, tmp / "contours.png")
         (tmp / "segmentation.json").write_text(json.dumps(record, indent=2) + "\n")
 
 
 def write_contours(hu, labels, fitted, world_from_ijk, path: Path) -> None:
     """Axial, coronal and sagittal slices through each bone's centre: the label map's contours
-    (solid) and the fitted meshes' (dashed)."""
+    (solid) and the fitted meshes' interiors (dashed)."""
     import matplotlib
 
     matplotlib.use("Agg")
