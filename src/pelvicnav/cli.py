@@ -485,9 +485,11 @@ def segment(
     out: Annotated[Path, typer.Option(help="Output folder.")],
     labels: Annotated[
         Path | None,
-        typer.Option(help="Existing label map to fit the model to (same grid); default: the "
-                     "active shape model segments the CT."),
-    ] = None,  # fmt: skip
+        typer.Option(
+            help="Existing label map to fit the model to (same grid); default: the "
+            "active shape model segments the CT."
+        ),
+    ] = None,
     label_scheme: LabelSchemeOption = "ours",
     model: ModelOption = None,
     atlas: Annotated[
@@ -505,8 +507,9 @@ def segment(
     from pelvicnav.workflow.segment import segment as run_segment
 
     console = Console()
-    steps = ["reading", "pyramid", "initialisation", "profile search", "free-form refinement",
-             "label map"] if labels is None else ["reading", "fitting the model to the labels"]  # fmt: skip
+    steps = ["reading", "fitting the model to the labels"]
+    if labels is None:
+        steps = ["reading", "pyramid", "initialisation", "profile", "free-form", "label map"]
     try:
         if model is not None and atlas is not None:
             raise ValueError("give --model or --atlas, not both")

@@ -456,7 +456,8 @@ def _free_form(V, faces, level, surface, opt, inside):
             for _ in range(opt.free_form_smooth):
                 disp = 0.5 * disp + 0.5 * (ring @ disp) / degree[:, None]
                 weight = 0.5 * weight + 0.5 * (ring @ weight) / degree
-            V[b] = V[b] + disp / np.maximum(weight, 0.25)[:, None] * np.minimum(weight, 1.0)[:, None]
+            gain = np.minimum(weight, 1.0) / np.maximum(weight, 0.25)
+            V[b] = V[b] + disp * gain[:, None]
     return V
 
 
@@ -549,7 +550,7 @@ def rasterise_labels(
     where = np.argwhere((out == 0) & bone)
     if len(where) and band > 0:
         samples = [_surface_samples(vertices[b], faces[b]) for b in range(3)]
-        owner = np.concatenate([np.full(len(x), b + 1, dtype=np.uint8) for b, x in enumerate(samples)])
+        owner = np.concatenate([np.full(len(x), b + 1, np.uint8) for b, x in enumerate(samples)])
         d, i = cKDTree(np.concatenate(samples)).query(
             tf.apply(B, where.astype(np.float64)), distance_upper_bound=band
         )
@@ -608,7 +609,7 @@ def segment_ct(
     say = progress or (lambda _: None)
     data = np.asarray(hu)
     if data.ndim != 3 or min(data.shape) < 8:
-        raise ValueError(f"the CT must be a 3D volume of at least 8 voxels a side, got {data.shape}")
+        raise ValueError(f"the CT must be a 3D volume, at least 8 voxels a side; got {data.shape}")
     A = np.asarray(world_from_ijk, dtype=np.float64)
     clock = {"start": time.perf_counter()}
 

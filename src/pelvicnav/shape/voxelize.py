@@ -42,9 +42,11 @@ def _kernel():
                     w0 = (b[0] - x) * (c[1] - y) - (b[1] - y) * (c[0] - x)
                     w1 = (c[0] - x) * (a[1] - y) - (c[1] - y) * (a[0] - x)
                     w2 = (a[0] - x) * (b[1] - y) - (a[1] - y) * (b[0] - x)
-                    if (w0 >= 0) == (area > 0) and (w1 >= 0) == (area > 0) and (
-                        w2 >= 0
-                    ) == (area > 0):
+                    if (
+                        (w0 >= 0) == (area > 0)
+                        and (w1 >= 0) == (area > 0)
+                        and (w2 >= 0) == (area > 0)
+                    ):
                         z = (w0 * a[2] + w1 * b[2] + w2 * c[2]) / area
                         k = int(np.ceil(z))
                         if k < 0:

@@ -219,10 +219,11 @@ def summarise_segmentation(rows: list[dict]) -> list[dict]:
                 continue
             d = np.array([r["dice"] for r in sel])
             e = np.array([r["rmsd_mm"] for r in sel])
+            seconds = float(np.median([r["seconds"] for r in sel]))
             out.append({"kind": kind, "condition": cond, "bone": bone, "n": len(sel),
                         "dice_median": float(np.median(d)), "dice_min": float(d.min()),
                         "rmsd_median_mm": float(np.median(e)), "rmsd_max_mm": float(e.max()),
-                        "seconds_median": float(np.median([r["seconds"] for r in sel]))})  # fmt: skip
+                        "seconds_median": seconds})  # fmt: skip
     return out
 
 

@@ -8,7 +8,6 @@ to hold bone on the right sides (:func:`pelvicnav.shape.labels.check_bone_labels
 from __future__ import annotations
 
 import os
-
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -105,9 +104,10 @@ def bones_of_ct(
         say("fitting the model to the labels")
         fits = fit_bones(ours, A, model or load_model())
         quality = {b: {"rms_mm": fits[b].rms_mm} for b in BONES}
+        seconds = {"read": read_s, "fit": time.perf_counter() - started - read_s}
         return BoneInputs(hu, A, ours, {b: fits[b].vertices for b in BONES},
                           "pelvis model fitted to the label map (shape.fit.fit_labels)", quality,
-                          {"read": read_s, "fit": time.perf_counter() - started - read_s})  # fmt: skip
+                          seconds)  # fmt: skip
     from pelvicnav.shape.asm import ShapePrior, segment_ct
 
     say("reading")
