@@ -194,7 +194,11 @@ def study_target_pose(
     workers: Annotated[int, typer.Option(help="Worker processes.")] = 2,
     prior: Annotated[float, typer.Option(help="SPM prior weight (equation 8a).")] = 0.1,
     segmentation: Annotated[
-        str, typer.Option(help="Meshes standing in for the segmentation: 'truth' (ASM later).")
+        str,
+        typer.Option(
+            help="What the planner sees: 'truth' (the atlas meshes) or 'asm' (each tested "
+            "subject segmented on a synthetic CT, prior from the others; OUT/segmentation)."
+        ),
     ] = "truth",
 ) -> None:
     """Leave-one-out target-pose study (SSM_single, CM, SPM, SPM_CC) on the atlas."""
@@ -209,22 +213,29 @@ def study_target_pose(
         run_target_pose_study,
     )
 
-    if segmentation != "truth":
-        raise _fail(
-            f"--segmentation {segmentation!r} is not available yet: only 'truth' (the atlas's "
-            "ground-truth meshes) until ASM segmentation lands"
-        )
     try:
         a = _population(atlas)
         ids = None if subjects is None else tuple(a.subject_ids[:subjects])
         if subjects is not None and not 1 <= subjects <= a.n_subjects:
             raise ValueError(f"--subjects must be between 1 and {a.n_subjects}, got {subjects}")
-        settings = TargetPoseSettings(seed=seed, subjects=ids, workers=workers, prior=prior)
+        settings = TargetPoseSettings(seed=seed, subjects=ids, workers=workers, prior=prior,
+                                      segmentation=segmentation)  # fmt: skip
+        segmented = None
+        if segmentation == "asm":
+            from pelvicnav.studies.segmentation import segmented_population
+
+            with Progress() as bar:
+                task = bar.add_task("segmenting (ASM)", total=None)
+                segmented = segmented_population(
+                    a, out / "segmentation", subjects or a.n_subjects, seed=seed,
+                    workers=workers, progress=lambda d, t: bar.update(task, completed=d, total=t),
+                )  # fmt: skip
         with Progress() as bar:
             task = bar.add_task("leave-one-out", total=len(ids or a.subject_ids))
             run_target_pose_study(
-                a, out, settings, progress=lambda done, total: bar.update(task, completed=done)
-            )
+                a, out, settings, segmented=segmented,
+                progress=lambda done, total: bar.update(task, completed=done),
+            )  # fmt: skip
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
     import csv
@@ -324,6 +335,13 @@ def study_registration(
     cases: Annotated[int, typer.Option(help="Number of simulated cases.")] = 20,
     dof: Annotated[int, typer.Option(help="6 (two views, P known) or 9 (one view).")] = 6,
     seed: Annotated[int, typer.Option(help="Seed of the study.")] = 0,
+    segmentation: Annotated[
+        str,
+        typer.Option(
+            help="Bone labels of the CT: 'truth' or 'asm' (segmented, prior from the "
+            "other subjects)."
+        ),
+    ] = "truth",
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
     force: ForceOption = False,
@@ -348,7 +366,8 @@ def study_registration(
         if cases < 1:
             raise ValueError(f"--cases must be >= 1, got {cases}")
         a = _population(atlas)
-        settings = RegistrationStudySettings.for_dof(dof, n_cases=cases, seed=seed)
+        settings = RegistrationStudySettings.for_dof(dof, n_cases=cases, seed=seed,
+                                                     segmentation=segmentation)  # fmt: skip
         with Progress() as bar:
             task = bar.add_task("cases", total=cases)
             rows = run_registration_study(
@@ -398,6 +417,59 @@ def study_capture_range(
         unit = "deg" if axis.startswith("r") else "mm"
         console.print(f"{axis}: capture range ±{s['capture']:g} {unit}")
     console.print(f"wrote {out / 'results.csv'}, {out / 'summary.md'}, {out / 'capture_range.png'}")
+
+
+@study_app.command("segmentation")
+def study_segmentation(
+    out: Annotated[Path, typer.Option(help="Output folder (created).")],
+    atlas: PopulationOption = None,
+    subjects: Annotated[
+        int, typer.Option(help="Leave-one-out over the first N subjects (the prior from the rest).")
+    ] = 20,
+    dislocated: Annotated[
+        bool, typer.Option(help="Also segment each subject with one innominate dislocated.")
+    ] = False,
+    real_ct: Annotated[
+        bool, typer.Option(help="Also the real CTs (PELVICNAV_REAL_CT or shared/data/real-ct).")
+    ] = True,
+    quick: Annotated[bool, typer.Option(help="Two subjects, intact, no real CTs (CI).")] = False,
+    seed: Annotated[int, typer.Option(help="Seed of the synthetic CTs.")] = 0,
+    workers: WorkersOption = None,
+    scheduler: SchedulerOption = None,
+    force: ForceOption = False,
+) -> None:
+    """ASM segmentation accuracy: Dice and surface RMSD per bone, leave-one-out on CTs
+    synthesised from atlas subjects (intact, dislocated) and on the real CTs."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from pelvicnav.io.atlas import AtlasNotFoundError
+    from pelvicnav.studies.segmentation import SegmentationStudySettings, run_segmentation_study
+
+    if quick:
+        settings = SegmentationStudySettings.quick(seed)
+    else:
+        settings = SegmentationStudySettings(n_subjects=subjects, dislocated=dislocated,
+                                             real_ct=real_ct, seed=seed)  # fmt: skip
+    try:
+        population = _population(atlas)
+        columns = (TextColumn("{task.description}"), BarColumn(),
+                   TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn())  # fmt: skip
+        with Progress(*columns) as bar:
+            task = bar.add_task("CTs", total=None)
+            summary = run_segmentation_study(
+                population, out, settings, workers=workers, scheduler=scheduler, force=force,
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
+            )  # fmt: skip
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    console = Console()
+    for s in summary:
+        console.print(
+            f"{s['kind']} {s['condition']} {s['bone']}: Dice {s['dice_median']:.3f} "
+            f"(min {s['dice_min']:.3f}), RMSD {s['rmsd_median_mm']:.2f} mm (n={s['n']})"
+        )
+    console.print(f"wrote {out / 'results.csv'}, {out / 'summary.md'}, {out / 'segmentation.png'}")
 
 
 @study_app.command("ssm-reference")

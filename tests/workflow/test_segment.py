@@ -1,4 +1,5 @@
-"""``pelvicnav segment`` with a label map: outputs, fit quality, and refusal of bad input."""
+"""``pelvicnav segment``: with a label map and with the ASM alone; outputs, fit quality, and
+refusal of bad input."""
 
 from __future__ import annotations
 
@@ -13,6 +14,11 @@ from pelvicnav.cli import app
 from pelvicnav.io.nifti import write_nifti
 
 runner = CliRunner()
+
+
+def one_slice(volume):
+    k = volume.shape[2] // 2
+    return volume[:, :, k : k + 1].astype(np.int16)
 
 
 @pytest.fixture(scope="module")
@@ -32,6 +38,8 @@ def patient(tmp_path_factory):
     ts = np.select([labels == 1, labels == 2, labels == 3], [25, 77, 78], 0).astype(np.int16)
     write_nifti(root / "ts.nii.gz", ts, A)
     write_nifti(root / "other.nii.gz", labels[:-1], A)
+    write_nifti(root / "nobone.nii.gz", np.full(labels.shape, 40, np.int16), A)
+    write_nifti(root / "flat.nii.gz", one_slice(np.where(labels > 0, 300, 40)), A)
     return root, truth
 
 
@@ -47,7 +55,7 @@ def test_segment_from_a_totalsegmentator_map(patient, tmp_path):
     assert res.exit_code == 0, res.output
     record = json.loads((out / "segmentation.json").read_text())
     for b, bone in enumerate(BONES):
-        assert record["bones"][bone]["dice_fitted_vs_labels"] > 0.9, record["bones"][bone]
+        assert record["bones"][bone]["dice_surface_vs_labels"] > 0.9, record["bones"][bone]
         points, faces = read_polydata(out / f"{bone}.vtk")
         assert points.shape == truth[b].shape
         assert np.median(np.linalg.norm(points - truth[b], axis=1)) < 1.5
@@ -62,14 +70,20 @@ def test_segment_refuses_bad_input_and_writes_nothing(patient, tmp_path):
     root, _ = patient
     out = tmp_path / "seg"
     ct = str(root / "ct.nii.gz")
-    for args, message in (
-        ([], "not available yet"),
-        (["--labels", str(root / "ts.nii.gz")], "totalsegmentator"),
-        (["--labels", str(root / "other.nii.gz")], "does not match the CT"),
-        (["--labels", str(root / "labels.nii.gz"), "--label-scheme", "sacrum=1"], "no label for"),
-        (["--labels", str(root / "missing.nii.gz")], "file not found"),
+    for image, args, message in (
+        (str(root / "nobone.nii.gz"), [], "no bone"),
+        (str(root / "flat.nii.gz"), [], "3D volume"),
+        (ct, ["--labels", str(root / "ts.nii.gz")], "totalsegmentator"),
+        (ct, ["--labels", str(root / "other.nii.gz")], "does not match the CT"),
+        (
+            ct,
+            ["--labels", str(root / "labels.nii.gz"), "--label-scheme", "sacrum=1"],
+            "no label for",
+        ),
+        (ct, ["--labels", str(root / "missing.nii.gz")], "file not found"),
     ):
-        res = runner.invoke(app, ["segment", ct, "--out", str(out), *args])
+        res = runner.invoke(app, ["segment", image, "--out", str(out), *args])
         assert res.exit_code == 2, (args, res.output)
         assert message in res.output, res.output
+        assert image in res.output.replace("\n", "") or "--labels" in args, res.output
         assert not out.exists()

@@ -49,6 +49,8 @@ class ASMSettings:
     ----------
     levels_mm : tuple of float
         Target voxel size of each pyramid level, coarse to fine.
+    search_level_mm : float
+        Voxel size of the global placement search (:func:`initial_pose`).
     search_mm : tuple of float
         Half-length of the profile search along the normal, per level.
     iterations : tuple of int
@@ -72,6 +74,7 @@ class ASMSettings:
     """
 
     levels_mm: tuple[float, ...] = (4.0, 2.0, 1.0)
+    search_level_mm: float = 6.0
     search_mm: tuple[float, ...] = (10.0, 5.0, 2.5)
     iterations: tuple[int, ...] = (12, 10, 8)
     noise_mm2: tuple[float, ...] = (16.0, 4.0, 1.0)
@@ -274,33 +277,110 @@ def _trimmed_icp(source, lookup, inside, start, *, iterations=20, keep=0.8, scal
     return T, cost
 
 
+def _rotation_about(axis: int, degrees: float, centre: NDArray) -> NDArray[np.float64]:
+    rotvec = np.zeros(3)
+    rotvec[axis] = np.deg2rad(degrees)
+    T = np.eye(4)
+    T[:3, :3] = tf.matrix_from_rotvec(rotvec)
+    T[:3, 3] = centre - T[:3, :3] @ centre
+    return T
+
+
+def _template(level: _Level, bones: list[NDArray], faces) -> tuple[NDArray, NDArray]:
+    """Inside mask of meshes on a box of the level's grid: ``(mask, lo)``, ``lo`` the box's
+    first voxel (level ijk)."""
+    from pelvicnav.shape.voxelize import inside_mask
+
+    ijk = tf.apply(level.ijk_from_world, np.concatenate(bones))
+    lo = np.floor(ijk.min(axis=0)).astype(int) - 1
+    shape = tuple(int(n) for n in np.ceil(ijk.max(axis=0)).astype(int) - lo + 2)
+    B = level.world_from_ijk.copy()
+    B[:3, 3] = level.world_from_ijk[:3, :3] @ lo + level.world_from_ijk[:3, 3]
+    mask = np.zeros(shape, dtype=bool)
+    for v, f in zip(bones, faces, strict=True):
+        mask |= inside_mask(v, f, B, shape)
+    return mask, lo
+
+
+def _best_shift(signed: NDArray, mask: NDArray, lo: NDArray, window: NDArray | None = None):
+    """Translation (level ijk) of a template that best matches a +-1 bone map by FFT
+    correlation, within ``window`` voxels of no shift if given; ``(shift, score)``, the score
+    being the mean of the map over the shifted template (1: all bone, -1: none)."""
+    from scipy.signal import fftconvolve
+
+    corr = fftconvolve(signed, mask[::-1, ::-1, ::-1].astype(np.float32), mode="full")
+    L = np.asarray(mask.shape)
+    if window is not None:
+        n0 = lo + L - 1  # the index of no shift
+        lo_w = np.maximum(n0 - window, 0)
+        hi_w = np.minimum(n0 + window + 1, corr.shape)
+        box = tuple(slice(a, b) for a, b in zip(lo_w, hi_w, strict=True))
+        sub = corr[box]
+        n = np.asarray(np.unravel_index(np.argmax(sub), sub.shape)) + lo_w
+    else:
+        n = np.asarray(np.unravel_index(np.argmax(corr), corr.shape))
+    return (n - (L - 1)) - lo, float(corr[tuple(n)] / max(mask.sum(), 1))
+
+
+def _shift_world(level: _Level, shift: NDArray) -> NDArray[np.float64]:
+    T = np.eye(4)
+    T[:3, 3] = level.world_from_ijk[:3, :3] @ shift
+    return T
+
+
 def initial_pose(
-    level: _Level, reference: NDArray, threshold: float
+    search: _Level, level: _Level, reference: NDArray, faces, threshold: float
 ) -> tuple[NDArray[np.float64], float]:
     """``(world_from_reference, trimmed RMS mm)``: the mean pelvis placed on the bone content.
+
+    A global search on the coarse ``search`` level: the mean pelvis, tilted about the
+    left-right axis (-12 to 12 deg) and scaled (0.9-1.1), rasterised and correlated with the CT's
+    bone map (+1 bone, -1 not) over all translations by FFT; the best placement is refined by
+    trimmed closest-bone ICP on ``level``.
 
     Raises
     ------
     ValueError
         No bone in the CT, or no placement that overlaps it.
     """
+    bone = search.data > threshold
+    if not bone.any():
+        raise ValueError("the CT holds no bone (no voxel above the bone threshold)")
+    signed = np.where(bone, 1.0, -1.0).astype(np.float32)
+    pts = tf.apply(search.world_from_ijk, np.argwhere(bone).astype(np.float64))
+    centre = reference.reshape(-1, 3).mean(axis=0)
+    place = np.eye(4)
+    place[:3, 3] = np.median(pts, axis=0) - centre
+    best = (-np.inf, np.eye(4))
+    for tilt in (-12.0, -6.0, 0.0, 6.0, 12.0):
+        for scale in (0.9, 1.0, 1.1):
+            S = np.eye(4)
+            S[:3, :3] *= scale
+            S[:3, 3] = centre - scale * centre
+            T = place @ _rotation_about(0, tilt, centre) @ S
+            mask, lo = _template(search, [tf.apply(T, v) for v in reference], faces)
+            shift, score = _best_shift(signed, mask, lo)
+            if score > best[0]:
+                best = (score, _shift_world(search, shift) @ T)
     lookup = _closest_bone(level, threshold)
-    bone = np.argwhere(level.data > threshold).astype(np.float64)
-    pts = tf.apply(level.world_from_ijk, bone)
     ref = reference.reshape(-1, 3)[::7]
-    centre = ref.mean(axis=0)
-    x, y = np.median(pts[:, 0]), np.median(pts[:, 1])
-    z_lo, z_hi = np.quantile(pts[:, 2], [0.02, 0.98])
-    best = (np.eye(4), np.inf)
-    for z in np.arange(z_lo, z_hi + 1e-6, 20.0):
-        start = np.eye(4)
-        start[:3, 3] = np.array([x, y, z]) - centre
-        T, cost = _trimmed_icp(ref, lookup, lambda p: _inside_grid(level, p), start)
-        if cost < best[1]:
-            best = (T, cost)
-    if not np.isfinite(best[1]):
+    T, cost = _trimmed_icp(ref, lookup, lambda p: _inside_grid(level, p), best[1])
+    if not np.isfinite(cost):
         raise ValueError("could not place the pelvis model on the CT's bone content")
-    return best
+    return T, cost
+
+
+def _bone_search(search: _Level, V: NDArray, faces, threshold: float, reach_mm: float = 25.0):
+    """Each bone's own translation: its template correlated with the bone map within
+    ``reach_mm`` of where the pelvis put it (a dislocated bone moved up to 20 mm)."""
+    signed = np.where(search.data > threshold, 1.0, -1.0).astype(np.float32)
+    window = np.ceil(reach_mm / np.linalg.norm(search.world_from_ijk[:3, :3], axis=0)).astype(int)
+    out = V.copy()
+    for b in range(len(V)):
+        mask, lo = _template(search, [V[b]], [faces[b]])
+        shift, _ = _best_shift(signed, mask, lo, window)
+        out[b] = tf.apply(_shift_world(search, shift), V[b])
+    return out
 
 
 def _clamped_fit(ssm: ShapeModel, points, indices, noise: float, max_sigma: float):
@@ -315,11 +395,13 @@ def _clamped_fit(ssm: ShapeModel, points, indices, noise: float, max_sigma: floa
     return fit.vertices, w, fit.subject_from_model
 
 
-def _edges(level: _Level, vertices, normals, search_mm: float, min_edge: float, inside):
+def _edges(level: _Level, vertices, normals, search_mm, min_edge, inside, threshold):
     """Edge offsets along the normals: ``(found (n,) bool, offset (n,) mm)``.
 
-    The edge is where the CT number falls most steeply going outwards (bone inside, soft tissue
-    outside), at least ``min_edge`` across two samples, with a mild penalty on the distance.
+    An edge is where the profile crosses the bone threshold going outwards (bone inside, not
+    bone outside) with a fall of at least ``min_edge`` across two samples; of several, the
+    steepest, less 20 HU per mm of distance. The inner edge of a neighbour's cortex (a femoral
+    head's, cancellous bone beyond) does not cross the threshold, so it is never taken.
     """
     from scipy.ndimage import map_coordinates
 
@@ -328,12 +410,13 @@ def _edges(level: _Level, vertices, normals, search_mm: float, min_edge: float, 
     pts = vertices[:, None, :] + t[None, :, None] * normals[:, None, :]
     ijk = tf.apply(level.ijk_from_world, pts.reshape(-1, 3))
     prof = map_coordinates(level.data, ijk.T, order=1, mode="nearest").reshape(len(vertices), -1)
-    fall = prof[:, :-2] - prof[:, 2:]  # I(t - h) - I(t + h)
+    inner, outer = prof[:, :-2], prof[:, 2:]
+    fall = inner - outer  # I(t - h) - I(t + h)
+    crossing = (inner > threshold) & (outer <= threshold) & (fall >= min_edge)
     tc = t[1:-1]
-    score = fall - 0.15 * min_edge * (np.abs(tc) / max(search_mm, 1e-9)) ** 2 * 4
+    score = np.where(crossing, fall - 20.0 * np.abs(tc), -np.inf)
     best = np.argmax(score, axis=1)
-    found = fall[np.arange(len(vertices)), best] >= min_edge
-    found &= inside(vertices)
+    found = np.isfinite(score[np.arange(len(vertices)), best]) & inside(vertices)
     return found, tc[best]
 
 
@@ -394,7 +477,7 @@ def _data_pairs(b, normals, nearest, surface: _Surface):
     return j[agree], surface.points[near][agree]
 
 
-def _fit_level(prior, V, level, surface, k, opt, inside, weights):
+def _fit_level(prior, V, level, surface, k, opt, inside, weights, threshold):
     """Search-and-fit rounds of one level for the three bones; returns the bones' scales."""
     from scipy.spatial import cKDTree
 
@@ -403,7 +486,9 @@ def _fit_level(prior, V, level, surface, k, opt, inside, weights):
         normals = [vertex_normals(V[b], prior.faces[b]) for b in range(3)]
         nearest = _nearest_bones([cKDTree(V[b]) for b in range(3)], surface, opt.search_mm[k])
         for b, bone in enumerate(BONES):
-            found, off = _edges(level, V[b], normals[b], opt.search_mm[k], opt.min_edge_hu, inside)
+            found, off = _edges(
+                level, V[b], normals[b], opt.search_mm[k], opt.min_edge_hu, inside, threshold
+            )
             if found.sum() < 0.1 * len(V[b]):
                 continue
             idx = np.flatnonzero(found)
@@ -431,7 +516,7 @@ def _bone_icp(ssm, v, lookup, inside, noise, max_sigma, iterations=10):
     return v, w
 
 
-def _free_form(V, faces, level, surface, opt, inside):
+def _free_form(V, faces, level, surface, opt, inside, threshold):
     """Edge and uncovered-boundary displacements, smoothed over each mesh, ``rounds`` times."""
     from scipy.spatial import cKDTree
 
@@ -443,8 +528,9 @@ def _free_form(V, faces, level, surface, opt, inside):
         )
         for b in range(3):
             found, off = _edges(
-                level, V[b], normals[b], opt.free_form_search_mm, opt.min_edge_hu, inside
-            )
+                level, V[b], normals[b], opt.free_form_search_mm, opt.min_edge_hu, inside,
+                threshold,
+            )  # fmt: skip
             disp = np.where(found[:, None], off[:, None] * normals[b], 0.0)
             weight = found.astype(np.float64)
             j, pts = _data_pairs(b, normals[b], nearest, surface)
@@ -620,12 +706,50 @@ def segment_ct(
 
     say("pyramid")
     threshold, masked = bone_threshold(data, opt.bone_hu)
-    levels = _pyramid(data, A, opt.levels_mm)
+    image, threshold_fit = _fit_image(data, threshold, masked)
+    levels = _pyramid(image, A, opt.levels_mm)
+    search = _pyramid(image, A, (opt.search_level_mm,))[0]
     lap("pyramid")
     say("initialisation")
-    world_from_ref, _ = initial_pose(levels[0], prior.reference, threshold)
-    V = tf.apply(world_from_ref, prior.reference)
-    coarse = levels[0]
+    V, weights = _place(search, levels[0], prior, threshold_fit, opt)
+    lap("initialisation")
+    scales = {}
+    for k, level in enumerate(levels):
+        say(f"profile search at {level.spacing_mm:.1f} mm")
+        inside = lambda p, level=level: _inside_grid(level, p, margin=2.0)  # noqa: E731
+        surface = _bone_surface(level, threshold_fit, V.reshape(-1, 3), 2 * opt.search_mm[k])
+        scales.update(_fit_level(prior, V, level, surface, k, opt, inside, weights, threshold_fit))
+    lap("model")
+    say("free-form refinement")
+    inside = lambda p: _inside_grid(levels[-1], p, margin=2.0)  # noqa: E731
+    V = _free_form(V, prior.faces, levels[-1], surface, opt, inside, threshold_fit)
+    V, overlaps = separate_bones(V, prior.faces)
+    lap("free_form")
+    say("label map")
+    band = opt.label_band_mm if masked is None else opt.masked_reach_mm
+    labels = rasterise_labels(data, A, V, prior.faces, threshold, band, masked)
+    lap("labels")
+    quality = _quality(V, prior, levels[-1], opt, weights, overlaps, scales, threshold_fit)
+    clock.pop("_last", None)
+    clock.pop("start")
+    clock["total"] = float(sum(clock.values()))
+    return ASMResult(vertices=V, weights=weights, labels=labels, quality=quality, seconds=clock)
+
+
+def _fit_image(data: NDArray, threshold: float, masked: float | None):
+    """The image the model is fitted to and its bone threshold. A masked CT tells the bones'
+    boundary by its mask alone (inside, low-density bone can sit at the constant's level), so
+    the mask itself is fitted to."""
+    if masked is None:
+        return data, threshold
+    return np.where(data != masked, 1000.0, 0.0).astype(np.float32), 500.0
+
+
+def _place(search: _Level, coarse: _Level, prior: ShapePrior, threshold: float, opt):
+    """The mean pelvis placed (:func:`initial_pose`), each bone's translation searched, then each
+    bone's similarity and SSM weights by closest-bone ICP on the coarse level."""
+    world_from_ref, _ = initial_pose(search, coarse, prior.reference, prior.faces, threshold)
+    V = _bone_search(search, tf.apply(world_from_ref, prior.reference), prior.faces, threshold)
     lookup = _closest_bone(coarse, threshold)
     weights = {}
     for b, bone in enumerate(BONES):
@@ -634,37 +758,17 @@ def segment_ct(
         V[b], weights[bone] = _bone_icp(
             ssm, start, lookup, lambda p: _inside_grid(coarse, p), opt.noise_mm2[0], opt.max_sigma
         )
-    lap("initialisation")
-    scales = {}
-    for k, level in enumerate(levels):
-        say(f"profile search at {level.spacing_mm:.1f} mm")
-        inside = lambda p, level=level: _inside_grid(level, p, margin=2.0)  # noqa: E731
-        surface = _bone_surface(level, threshold, V.reshape(-1, 3), 2 * opt.search_mm[k])
-        scales.update(_fit_level(prior, V, level, surface, k, opt, inside, weights))
-    lap("model")
-    say("free-form refinement")
-    inside = lambda p: _inside_grid(levels[-1], p, margin=2.0)  # noqa: E731
-    V = _free_form(V, prior.faces, levels[-1], surface, opt, inside)
-    V, overlaps = separate_bones(V, prior.faces)
-    lap("free_form")
-    say("label map")
-    band = opt.label_band_mm if masked is None else opt.masked_reach_mm
-    labels = rasterise_labels(data, A, V, prior.faces, threshold, band, masked)
-    lap("labels")
-    quality = _quality(V, prior, levels[-1], opt, weights, overlaps, scales)
-    clock.pop("_last", None)
-    clock.pop("start")
-    clock["total"] = float(sum(clock.values()))
-    return ASMResult(vertices=V, weights=weights, labels=labels, quality=quality, seconds=clock)
+    return V, weights
 
 
-def _quality(V, prior, fine, opt, weights, overlaps, scales) -> dict[str, dict[str, float]]:
+def _quality(V, prior, fine, opt, weights, overlaps, scales, threshold) -> dict:
     out = {}
     for b, bone in enumerate(BONES):
         n = vertex_normals(V[b], prior.faces[b])
         found, off = _edges(
-            fine, V[b], n, opt.search_mm[-1], opt.min_edge_hu, lambda p: _inside_grid(fine, p)
-        )
+            fine, V[b], n, opt.search_mm[-1], opt.min_edge_hu, lambda p: _inside_grid(fine, p),
+            threshold,
+        )  # fmt: skip
         limit = opt.max_sigma * np.sqrt(prior.shapes[bone].variances)
         out[bone] = {
             "edge_rms_mm": float(np.sqrt(np.mean(off[found] ** 2))) if found.any() else np.inf,

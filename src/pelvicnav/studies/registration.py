@@ -52,6 +52,7 @@ class RegistrationStudySettings:
     setup_mm: float = 20.0
     setup_deg: float = 5.0
     source_error_mm: float = 15.0
+    segmentation: str = "truth"
 
     @classmethod
     def for_dof(cls, dof: int, **kwargs) -> RegistrationStudySettings:
@@ -161,6 +162,8 @@ def registration_study(atlas: Atlas, settings: RegistrationStudySettings | None 
     from pelvicnav.register.multibody import RegistrationSettings
 
     cfg = settings or RegistrationStudySettings()
+    if cfg.segmentation not in ("truth", "asm"):
+        raise ValueError(f"segmentation must be 'truth' or 'asm', got {cfg.segmentation!r}")
     if cfg.dof == 9 and len(cfg.views) != 1:
         cfg = replace(cfg, views=cfg.views[:1])
     reg = registration or RegistrationSettings(dof=cfg.dof)
@@ -171,6 +174,7 @@ def registration_study(atlas: Atlas, settings: RegistrationStudySettings | None 
             "case_id": f"{i:04d}", "index": i, "subject": int(atlas.subject_ids[s]),
             "vertices": atlas.vertices[s], "faces": atlas.faces, "seed": cfg.seed * 1000 + i,
             "registration_seed": cfg.seed + i, "settings": cfg, "registration": reg,
+            "population": {"source": atlas.source, "n_subjects": atlas.n_subjects},
         })  # fmt: skip
     meta = {"study": asdict(cfg), "registration": asdict(reg), "population": atlas.source,
             "subjects": [int(x) for x in atlas.subject_ids]}  # fmt: skip
@@ -185,8 +189,11 @@ def run_registration_case(case: dict) -> list[dict]:
     sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
                                      settings=case["settings"])  # fmt: skip
     t_sim = time.perf_counter() - t0
+    labels, seg = sim["labels"], {}
+    if case["settings"].segmentation == "asm":
+        labels, seg = _asm_labels(case, sim)
     res = register_multibody(
-        sim["ct"], sim["labels"], sim["views"], seed=case["registration_seed"],
+        sim["ct"], labels, sim["views"], seed=case["registration_seed"],
         settings=case["registration"], dislocated=sim["bone"],  # known from the plan
     )  # fmt: skip
     rows = []
@@ -199,9 +206,22 @@ def run_registration_case(case: dict) -> list[dict]:
             "warnings": "; ".join(res.warnings), "similarity": res.similarity,
             "seconds": res.seconds, "stage1_s": res.stages[0].seconds,
             "stage2_s": res.stages[1].seconds if len(res.stages) > 1 else 0.0,
-            "simulation_s": t_sim,
+            "simulation_s": t_sim, **seg,
         })  # fmt: skip
     return rows
+
+
+def _asm_labels(case: dict, sim: dict) -> tuple[np.ndarray, dict]:
+    """The preoperative CT segmented by the ASM, prior fitted from the other subjects."""
+    from pelvicnav.metrics.overlap import dice
+    from pelvicnav.shape.asm import segment_ct
+    from pelvicnav.studies.segmentation import _leave_one_out
+
+    _, prior = _leave_one_out(case["population"], case["subject"])
+    res = segment_ct(sim["ct"].data, sim["ct"].world_from_ijk, prior)
+    seg = {f"asm_dice_{b}": dice(res.labels == k + 1, sim["labels"] == k + 1)
+           for k, b in enumerate(BONES)}  # fmt: skip
+    return res.labels, {**seg, "asm_s": res.seconds["total"]}
 
 
 def run_registration_study(

@@ -30,7 +30,7 @@ from pelvicnav import BONES
 from pelvicnav.studies.runner import Study, flatten, run_study
 
 __all__ = ["SegmentationStudySettings", "run_segmentation_case", "run_segmentation_study",
-           "segmentation_study", "summarise_segmentation"]  # fmt: skip
+           "segmentation_study", "segmented_population", "summarise_segmentation"]  # fmt: skip
 
 PAPER = {"rmsd_mm": 1.8, "dice": 0.95}
 GOALS = {"atlas": {"rmsd_mm": 1.2, "dice": 0.96}, "real": {"dice": 0.93}}
@@ -290,3 +290,24 @@ def _figure(rows: list[dict], path: Path) -> None:
     fig.suptitle("ASM segmentation: atlas leave-one-out and the real CTs")
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def segmented_population(
+    population, out: str | os.PathLike, n_subjects: int, *, seed: int = 0, **runner
+) -> np.ndarray:
+    """The first ``n_subjects`` subjects as the ASM segments them (leave-one-out prior, intact
+    CTs; the segmentation study run in ``out``, resumable); the others as they are.
+
+    Returns
+    -------
+    (population.n_subjects, 3, n_vertices, 3) float64
+    """
+    cfg = SegmentationStudySettings(n_subjects=n_subjects, dislocated=False, real_ct=False,
+                                    seed=seed)  # fmt: skip
+    run_segmentation_study(population, out, cfg, **runner)
+    V = np.array(population.vertices, dtype=np.float64)
+    for s in range(n_subjects):
+        sid = int(population.subject_ids[s])
+        with np.load(Path(out) / "meshes" / f"atlas-{sid:03d}-intact.npz") as f:
+            V[s] = f["vertices"]
+    return V

@@ -105,6 +105,10 @@ class TargetPoseSettings:
         Processes over test subjects.
     frame_scale : bool or None
         SPM global frame: similarity, rigid, or (None) similarity unless only the sacrum is seen.
+    segmentation : {"truth", "asm"}
+        What the planner sees of the test subject: its atlas meshes, or its bones segmented by
+        the ASM on a CT synthesised from it (prior from the other subjects; the segmentation
+        study's meshes). The error is always against the atlas meshes.
     """
 
     seed: int = 0
@@ -119,6 +123,7 @@ class TargetPoseSettings:
     max_dislocation_deg: float = 10.0
     workers: int = 1
     frame_scale: bool | None = None
+    segmentation: str = "truth"
 
     def __post_init__(self) -> None:
         for s in self.scenarios:
@@ -129,6 +134,8 @@ class TargetPoseSettings:
                 raise ValueError(f"unknown method {m!r}; expected one of {METHODS}")
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
+        if self.segmentation not in ("truth", "asm"):
+            raise ValueError(f"segmentation must be 'truth' or 'asm', got {self.segmentation!r}")
 
 
 def bone_pose(centroid: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -171,8 +178,10 @@ def _fold(
     test: int,
     settings: TargetPoseSettings,
     gaps: tuple[NDArray[np.float64], NDArray[np.float64]],
+    segmented: NDArray[np.float64] | None = None,
 ) -> list[dict]:
-    """All scenarios and methods for one left-out subject."""
+    """All scenarios and methods for one left-out subject (seen as ``segmented[test]`` when
+    given, else as its atlas meshes)."""
     from threadpoolctl import threadpool_limits
 
     from pelvicnav.pose.baselines import MirrorEstimator, SinglePelvisEstimator
@@ -183,6 +192,7 @@ def _fold(
         train_gaps = np.delete(gaps[0], test, axis=0)
         train_plane = np.delete(gaps[1], test, axis=0)
         subject = vertices[test]
+        seen = subject if segmented is None else segmented[test]
         rows: list[dict] = []
         ssm = (
             SinglePelvisEstimator.fit(train, noise_variance=settings.ssm_noise_variance)
@@ -203,9 +213,9 @@ def _fold(
                     settings.max_dislocation_mm,
                     settings.max_dislocation_deg,
                 )
-                current[b] = tf.apply(D, true)
+                current[b] = tf.apply(D, seen[BONES.index(b)])
                 disl[b] = (D, dmm, ddeg)
-            obs = {b: subject[BONES.index(b)] for b in observed}
+            obs = {b: seen[BONES.index(b)] for b in observed}
             estimates: dict[str, dict[str, tuple[NDArray, NDArray]]] = {}
             if ssm is not None:
                 est = ssm.estimate(obs, current)
@@ -285,7 +295,8 @@ def _stack_gaps(pairs: list) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
 
 def _run_fold(test: int) -> list[dict]:
     s = _WORKER_STATE
-    return _fold(s["vertices"], s["faces"], s["ids"], test, s["settings"], s["gaps"])
+    return _fold(s["vertices"], s["faces"], s["ids"], test, s["settings"], s["gaps"],
+                 s.get("segmented"))  # fmt: skip
 
 
 def run_target_pose_study(
@@ -294,6 +305,7 @@ def run_target_pose_study(
     settings: TargetPoseSettings,
     *,
     progress: Callable[[int, int], None] | None = None,
+    segmented: NDArray[np.float64] | None = None,
 ) -> list[dict]:
     """Run the leave-one-out study and write its outputs.
 
@@ -304,12 +316,16 @@ def run_target_pose_study(
         Output folder (created).
     settings : TargetPoseSettings
     progress : callable(done, total), optional
+    segmented : (n_subjects, 3, n_vertices, 3) float, optional
+        With ``settings.segmentation == "asm"``: each tested subject's segmented meshes.
 
     Returns
     -------
     list of dict
         The rows of ``cases.csv``.
     """
+    if (segmented is None) != (settings.segmentation == "truth"):
+        raise ValueError("segmented meshes go with segmentation='asm', and only with it")
     if atlas.n_subjects < 5:
         raise ValueError(f"the study needs at least 5 subjects, the atlas has {atlas.n_subjects}")
     tests = (
@@ -322,7 +338,8 @@ def run_target_pose_study(
     t0 = time.perf_counter()
     V = atlas.vertices
     faces = tuple(atlas.faces)
-    state = {"vertices": V, "faces": faces, "ids": atlas.subject_ids, "settings": settings}
+    state = {"vertices": V, "faces": faces, "ids": atlas.subject_ids, "settings": settings,
+             "segmented": segmented}  # fmt: skip
     rows: list[dict] = []
     if settings.workers == 1:
         _init_worker(state)
