@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from pelvicnav import BONES
-from pelvicnav.phantom.population import load_population
 from pelvicnav.studies.segmentation import (
     SegmentationStudySettings,
+    _population,
     run_segmentation_study,
     segmented_population,
 )
@@ -18,7 +18,7 @@ from pelvicnav.studies.segmentation import (
 
 @pytest.mark.slow
 def test_leave_one_out_case_is_segmented_stored_and_its_meshes_kept(tmp_path):
-    pop = load_population("model", n_subjects=6)
+    pop = _population({"source": "model", "n_subjects": 6})  # what the case will load (cached)
     settings = SegmentationStudySettings(n_subjects=1, dislocated=False, real_ct=False, seed=2)
     summary = run_segmentation_study(pop, tmp_path, settings, workers=0)
     assert [s["bone"] for s in summary] == list(BONES)

@@ -53,6 +53,7 @@ class RegistrationStudySettings:
     setup_deg: float = 5.0
     source_error_mm: float = 15.0
     segmentation: str = "truth"
+    beads: int = 0
 
     @classmethod
     def for_dof(cls, dof: int, **kwargs) -> RegistrationStudySettings:
@@ -77,7 +78,7 @@ def _random_rigid(rng, max_mm, max_deg, centre) -> NDArray[np.float64]:
 def simulate_registration_case(vertices, faces, *, seed: int, settings: RegistrationStudySettings):
     """Preoperative CT + labels, registration views (nominal geometry) and the true poses."""
     from pelvicnav.drr.volume import Volume
-    from pelvicnav.phantom.ctsynth import synthesize_ct
+    from pelvicnav.phantom.ctsynth import CTOptions, synthesize_ct
     from pelvicnav.phantom.dislocate import apply_dislocation, draw_dislocation
     from pelvicnav.phantom.xray import simulate_radiograph, standard_view
     from pelvicnav.register.multibody import RegistrationViews
@@ -86,7 +87,7 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
     V = np.asarray(vertices, dtype=np.float64)
     bone = ("left_hip", "right_hip")[int(rng.integers(2))]
     disl = draw_dislocation(V, faces, bone=bone, pattern="open-book", rng=rng)
-    ct = synthesize_ct(V, faces, rng=rng)
+    ct = synthesize_ct(V, faces, rng=rng, options=CTOptions(beads=settings.beads))
     moved, _ = apply_dislocation(ct, V, faces, disl, rng=rng)
     iso = V.reshape(-1, 3).mean(axis=0)
     setup = _random_rigid(rng, settings.setup_mm, settings.setup_deg, iso)
@@ -124,6 +125,8 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
         "setup": (float(np.linalg.norm(setup[:3, 3] - (iso - setup[:3, :3] @ iso))),),
         "centroids": {b: V[i].mean(axis=0) for i, b in enumerate(BONES)},
         "landmarks": {b: V[i][:: max(1, len(V[i]) // 50)] for i, b in enumerate(BONES)},
+        "beads": ct.beads,
+        "bead_bones": ct.bead_bones,
     }
 
 
