@@ -456,6 +456,44 @@ def study_dose(
     console.print(f"wrote {out / 'results.csv'}, {out / 'summary.md'}, {out / 'dose.png'}")
 
 
+@study_app.command("runtime")
+def study_runtime(
+    out: Annotated[Path, typer.Option(help="Output folder (created).")],
+    atlas: PopulationOption = None,
+    cases: Annotated[int, typer.Option(help="Simulated patients to time.")] = 10,
+    quick: Annotated[bool, typer.Option(help="One patient (for CI).")] = False,
+    seed: Annotated[int, typer.Option(help="Seed of the simulated patients.")] = 0,
+    force: ForceOption = False,
+) -> None:
+    """Runtime (table 2): segmentation, planning, stage 1, stage 2, augmentation, a subsequent
+    frame; one case at a time in this process (timings are per machine, not per cluster)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from pelvicnav.io.atlas import AtlasNotFoundError
+    from pelvicnav.studies.runtime import RuntimeSettings, run_runtime_study
+
+    settings = RuntimeSettings.quick(seed) if quick else RuntimeSettings(n_cases=cases, seed=seed)
+    try:
+        population = _population(atlas)
+        columns = (TextColumn("{task.description}"), BarColumn(),
+                   TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn())  # fmt: skip
+        with Progress(*columns) as bar:
+            task = bar.add_task("cases", total=None)
+            summary = run_runtime_study(
+                population, out, settings, workers=0, force=force,
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
+            )  # fmt: skip
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    console = Console()
+    for s in summary:
+        console.print(
+            f"{s['step']}: {s['median_s']:.2f} s (IQR {s['iqr_s']:.2f}; paper {s['paper_s']})"
+        )
+    console.print(f"wrote {out / 'results.csv'}, {out / 'summary.md'}")
+
+
 @study_app.command("segmentation")
 def study_segmentation(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],
