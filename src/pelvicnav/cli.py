@@ -456,6 +456,43 @@ def study_dose(
     console.print(f"wrote {out / 'results.csv'}, {out / 'summary.md'}, {out / 'dose.png'}")
 
 
+@study_app.command("fov")
+def study_fov(
+    out: Annotated[Path, typer.Option(help="Output folder (created).")],
+    atlas: PopulationOption = None,
+    quick: Annotated[bool, typer.Option(help="Two sizes, one crop each (for CI).")] = False,
+    seed: Annotated[int, typer.Option(help="Seed of the patients and crops.")] = 0,
+    workers: WorkersOption = None,
+    scheduler: SchedulerOption = None,
+    force: ForceOption = False,
+) -> None:
+    """Field of view (figure 12b): single-view 9-DoF PDE on radiographs cropped 340 -> 150 mm."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from pelvicnav.io.atlas import AtlasNotFoundError
+    from pelvicnav.studies.fov import FovSettings, run_fov_study
+
+    settings = FovSettings.quick(seed) if quick else FovSettings(seed=seed)
+    try:
+        population = _population(atlas)
+        columns = (TextColumn("{task.description}"), BarColumn(),
+                   TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn())  # fmt: skip
+        with Progress(*columns) as bar:
+            task = bar.add_task("crops", total=None)
+            summary = run_fov_study(
+                population, out, settings, workers=workers, scheduler=scheduler, force=force,
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
+            )  # fmt: skip
+    except (AtlasNotFoundError, ValueError) as err:
+        raise _fail(str(err)) from None
+    console = Console()
+    for s in summary:
+        console.print(f"{s['size_mm']:g} mm: PDE {s['pde_median_mm']:.2f} mm "
+                      f"(worst {s['pde_worst_mm']:.2f} mm, {s['n']} bones)")  # fmt: skip
+    console.print(f"wrote {out / 'results.csv'}, {out / 'summary.md'}, {out / 'fov.png'}")
+
+
 @study_app.command("runtime")
 def study_runtime(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],

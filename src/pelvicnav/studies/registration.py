@@ -54,6 +54,7 @@ class RegistrationStudySettings:
     source_error_mm: float = 15.0
     segmentation: str = "truth"
     beads: int = 0
+    carm: tuple[tuple[str, float], ...] = ()
 
     @classmethod
     def for_dof(cls, dof: int, **kwargs) -> RegistrationStudySettings:
@@ -94,7 +95,7 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
     patient = Volume(moved.hu.data, setup @ moved.hu.world_from_ijk)
     images, nominal, spacing, true_P = [], [], [], []
     for name in settings.views:
-        carm = standard_view(name, isocenter=tuple(iso))
+        carm = standard_view(name, isocenter=tuple(iso), **dict(settings.carm))
         true = carm
         if settings.dof == 9:
             e = rng.uniform(-1, 1, 3) * settings.source_error_mm / np.sqrt(3)
