@@ -305,10 +305,15 @@ def _template(level: _Level, bones: list[NDArray], faces) -> tuple[NDArray, NDAr
 def _best_shift(signed: NDArray, mask: NDArray, lo: NDArray, window: NDArray | None = None):
     """Translation (level ijk) of a template that best matches a +-1 bone map by FFT
     correlation, within ``window`` voxels of no shift if given; ``(shift, score)``, the score
-    being the mean of the map over the shifted template (1: all bone, -1: none)."""
+    being the mean of the map over the shifted template (1: all bone, -1: none; beyond the
+    grid counts as -1)."""
     from scipy.signal import fftconvolve
 
-    corr = fftconvolve(signed, mask[::-1, ::-1, ::-1].astype(np.float32), mode="full")
+    kernel = mask[::-1, ::-1, ::-1].astype(np.float32)
+    corr = fftconvolve(signed, kernel, mode="full")
+    # Template voxels beyond the grid count as not bone: no escape off the scanned field.
+    inside = fftconvolve(np.ones_like(signed), kernel, mode="full")
+    corr -= float(mask.sum()) - inside
     L = np.asarray(mask.shape)
     if window is not None:
         n0 = lo + L - 1  # the index of no shift

@@ -116,10 +116,15 @@ def _leave_one_out(source: dict, subject: int):
 
 
 def run_segmentation_case(case: dict) -> list[dict]:
-    """Segment one CT; one row per bone."""
-    if case["kind"] == "atlas":
-        return _atlas_case(case)
-    return _real_case(case)
+    """Segment one CT; one row per bone. A CT the ASM refuses (it finds no placement) is a
+    failed case, stored as such (Dice 0, no RMSD, the reason), not a crashed study."""
+    try:
+        return _atlas_case(case) if case["kind"] == "atlas" else _real_case(case)
+    except ValueError as err:
+        return [{"kind": case["kind"], "condition": case["condition"],
+                 "subject": str(case.get("subject", Path(case.get("folder", "")).name)),
+                 "bone": bone, "dice": 0.0, "rmsd_mm": float("nan"), "seconds": float("nan"),
+                 "error": str(err)} for bone in BONES]  # fmt: skip
 
 
 def _atlas_case(case: dict) -> list[dict]:
@@ -218,8 +223,9 @@ def summarise_segmentation(rows: list[dict]) -> list[dict]:
             if not sel:
                 continue
             d = np.array([r["dice"] for r in sel])
-            e = np.array([r["rmsd_mm"] for r in sel])
-            seconds = float(np.median([r["seconds"] for r in sel]))
+            e = np.array([r["rmsd_mm"] for r in sel], dtype=np.float64)
+            e = np.where(np.isfinite(e), e, np.inf)  # a failed case: no surface at all
+            seconds = float(np.nanmedian([r["seconds"] for r in sel]))
             out.append({"kind": kind, "condition": cond, "bone": bone, "n": len(sel),
                         "dice_median": float(np.median(d)), "dice_min": float(d.min()),
                         "rmsd_median_mm": float(np.median(e)), "rmsd_max_mm": float(e.max()),
@@ -279,7 +285,7 @@ def _figure(rows: list[dict], path: Path) -> None:
         for g in groups:
             for bone in BONES:
                 vals = [r[key] for r in rows if f"{r['kind']} {r['condition']}" == g
-                        and r["bone"] == bone]  # fmt: skip
+                        and r["bone"] == bone and np.isfinite(r[key])]  # fmt: skip
                 if vals:
                     data.append(vals)
                     names.append(f"{g}\n{bone}")
