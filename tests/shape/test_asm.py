@@ -96,16 +96,15 @@ def _thick_slices(ct, factor: int):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("variant", ["cut below the femoral heads", "4 mm slices", "masked"])
+@pytest.mark.parametrize("variant", ["masked and cut below the femoral heads", "4 mm slices"])
 def test_asm_is_robust_to_field_of_view_slices_and_masking(patient, variant):
     ct, truth, prior = patient
     hu, A, labels = ct.hu.data, ct.hu.world_from_ijk, ct.labels
-    if variant == "masked":
-        hu = np.where(labels > 0, hu, 0.0).astype(np.float32)
-    elif variant == "4 mm slices":
+    if variant == "4 mm slices":
         hu, A = _thick_slices(ct, 2)
         labels = None
-    else:
+    else:  # non-bone voxels set to 0 (as the real CTs come), the ischia partly out of the field
+        hu = np.where(labels > 0, hu, 0.0).astype(np.float32)
         heads = ct.femoral_heads[:, 2].min() - ct.femoral_heads[:, 3].max()
         k0 = int(np.ceil((heads - A[2, 3]) / A[2, 2]))
         hu, labels = hu[:, :, k0:], labels[:, :, k0:]
