@@ -251,7 +251,10 @@ def _fold(
                 for b, (C, refinement) in estimates[method].items():
                     true = subject[BONES.index(b)]
                     D, dmm, ddeg = disl[b]
-                    est_vertices = tf.apply(C, current[b])
+                    # Where the planned correction puts the real bone (with ASM input, the mesh
+                    # the planner saw carries the segmentation's own vertex error; the bone
+                    # does not): C applied to the true, dislocated bone.
+                    est_vertices = tf.apply(C @ D, true)
                     t, r, mv = pose_errors(true, est_vertices)
                     T_true = bone_pose(true.mean(axis=0))
                     T_est = C @ D @ T_true
