@@ -105,10 +105,10 @@ def test_study_commands_report_missing_atlas(tmp_path, monkeypatch):
         assert res.exit_code == 2, args
         assert "no pelvis atlas" in res.output
     res = runner.invoke(
-        app, ["study", "target-pose", "--out", str(tmp_path / "o"), "--segmentation", "asm"]
+        app, ["study", "target-pose", "--out", str(tmp_path / "o"), "--segmentation", "labels"]
     )
     assert res.exit_code == 2
-    assert "not available yet" in res.output
+    assert "'truth' or 'asm'" in res.output
     assert not (tmp_path / "o").exists()
 
 

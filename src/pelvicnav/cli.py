@@ -214,6 +214,8 @@ def study_target_pose(
     )
 
     try:
+        if segmentation not in ("truth", "asm"):
+            raise ValueError(f"--segmentation must be 'truth' or 'asm', got {segmentation!r}")
         a = _population(atlas)
         ids = None if subjects is None else tuple(a.subject_ids[:subjects])
         if subjects is not None and not 1 <= subjects <= a.n_subjects:
