@@ -130,8 +130,9 @@ def test_population_study_and_spm_modes_offline(tmp_path, monkeypatch):
 @pytest.mark.atlas
 def test_population_study_against_the_atlas(real_atlas_path, tmp_path):
     res = runner.invoke(
-        app, ["study", "population", "--out", str(tmp_path), "--atlas", str(real_atlas_path)]
-    )
+        app, ["study", "population", "--out", str(tmp_path), "--atlas", str(real_atlas_path),
+              "--subjects", "12"],
+    )  # fmt: skip
     assert res.exit_code == 0, res.output
     text = (tmp_path / "sizes.md").read_text()
     assert "atlas range" in text and "| NO |" not in text

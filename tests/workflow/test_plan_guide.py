@@ -174,7 +174,7 @@ def test_plan_bad_input_writes_nothing(tmp_path):
     for args, message in (
         ([str(tmp_path / "missing.nii.gz"), "--labels", "x"], "file not found"),
         ([str(tmp_path), "--dislocated", "femur", "--labels", "x"], "--dislocated must be"),
-        ([str(tmp_path)], "needs the active shape model"),
+        ([str(tmp_path)], "no DICOM image series"),  # no labels: the ASM would read the CT
     ):
         res = runner.invoke(app, ["plan", *args, "--out", str(out)])
         assert res.exit_code == 2, (args, res.output)
