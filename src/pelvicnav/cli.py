@@ -103,6 +103,14 @@ def _population(location: str | None, subject_ids: tuple[int, ...] | None = None
     return a
 
 
+def _study_progress():
+    """A progress bar for a study's cases: done/total and the time remaining."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    return Progress(TextColumn("{task.description}"), BarColumn(),
+                    TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn())  # fmt: skip
+
+
 def _fail(message: str) -> typer.Exit:
     from rich.console import Console
 
@@ -433,7 +441,6 @@ def study_dose(
 ) -> None:
     """Dose (figure 9d): TRE at fiducial beads from 50 down to 0.5 uGy/frame."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.dose import DoseSettings, run_dose_study
@@ -441,9 +448,7 @@ def study_dose(
     settings = DoseSettings.quick(seed) if quick else DoseSettings(seed=seed)
     try:
         population = _population(atlas)
-        columns = (TextColumn("{task.description}"), BarColumn(),
-                   TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn())  # fmt: skip
-        with Progress(*columns) as bar:
+        with _study_progress() as bar:
             task = bar.add_task("cases", total=None)
             summary = run_dose_study(
                 population, out, settings, workers=workers, scheduler=scheduler, force=force,
@@ -470,7 +475,6 @@ def study_fov(
 ) -> None:
     """Field of view (figure 12b): single-view 9-DoF PDE on radiographs cropped 340 -> 150 mm."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.fov import FovSettings, run_fov_study
@@ -478,9 +482,7 @@ def study_fov(
     settings = FovSettings.quick(seed) if quick else FovSettings(seed=seed)
     try:
         population = _population(atlas)
-        columns = (TextColumn("{task.description}"), BarColumn(),
-                   TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn())  # fmt: skip
-        with Progress(*columns) as bar:
+        with _study_progress() as bar:
             task = bar.add_task("crops", total=None)
             summary = run_fov_study(
                 population, out, settings, workers=workers, scheduler=scheduler, force=force,
@@ -507,7 +509,6 @@ def study_runtime(
     """Runtime (table 2): segmentation, planning, stage 1, stage 2, augmentation, a subsequent
     frame; one case at a time in this process (timings are per machine, not per cluster)."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.runtime import RuntimeSettings, run_runtime_study
@@ -515,9 +516,7 @@ def study_runtime(
     settings = RuntimeSettings.quick(seed) if quick else RuntimeSettings(n_cases=cases, seed=seed)
     try:
         population = _population(atlas)
-        columns = (TextColumn("{task.description}"), BarColumn(),
-                   TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn())  # fmt: skip
-        with Progress(*columns) as bar:
+        with _study_progress() as bar:
             task = bar.add_task("cases", total=None)
             summary = run_runtime_study(
                 population, out, settings, workers=0, force=force,
@@ -555,7 +554,6 @@ def study_segmentation(
     """ASM segmentation accuracy: Dice and surface RMSD per bone, leave-one-out on CTs
     synthesised from atlas subjects (intact, dislocated) and on the real CTs."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.segmentation import SegmentationStudySettings, run_segmentation_study
@@ -567,9 +565,7 @@ def study_segmentation(
                                              real_ct=real_ct, seed=seed)  # fmt: skip
     try:
         population = _population(atlas)
-        columns = (TextColumn("{task.description}"), BarColumn(),
-                   TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn())  # fmt: skip
-        with Progress(*columns) as bar:
+        with _study_progress() as bar:
             task = bar.add_task("CTs", total=None)
             summary = run_segmentation_study(
                 population, out, settings, workers=workers, scheduler=scheduler, force=force,

@@ -553,14 +553,9 @@ def _free_form(V, faces, level, surface, opt, inside, threshold):
 
 
 def _inside_mesh(vertices, faces, points) -> NDArray[np.bool_]:
-    import igl
+    from pelvicnav.phantom.ctsynth import _winding_inside
 
-    w = igl.fast_winding_number(
-        np.ascontiguousarray(vertices, dtype=np.float64),
-        np.ascontiguousarray(faces, dtype=np.int64),
-        np.ascontiguousarray(points, dtype=np.float64),
-    )
-    return np.asarray(w) > 0.5
+    return _winding_inside(vertices, faces, points)
 
 
 def separate_bones(vertices: NDArray, faces, *, margin_mm: float = 0.3, rounds: int = 4):
