@@ -16,10 +16,11 @@ Cootes et al., "Active shape models", CVIU 61 (1995) 38-59. The stages:
    of CT number (bone inside, soft tissue outside) within the level's search range, penalised
    by distance; MAP fit of a similarity and the SSM weights to the found edges
    (:meth:`~pelvicnav.shape.ssm.ShapeModel.fit_partial`), weights clamped to +-3 sigma.
-5. **Free-form refinement**: edge displacements smoothed over the mesh (vertex ``i`` stays the
-   same anatomical point), then the bones pushed apart where they overlap at the sacroiliac
-   joints and the symphysis.
-6. **Label map** on the CT's grid: a voxel belongs to the bone whose fitted surface it lies in,
+5. **Free-form refinement**: edge displacements smoothed over the mesh, then the bones pushed
+   apart where they overlap at the sacroiliac joints and the symphysis.
+6. **Correspondence**: each bone's vertices re-placed on its fitted surface where the model
+   expects them (:mod:`pelvicnav.shape.correspond`; the free-form stage lets them slide).
+7. **Label map** on the CT's grid: a voxel belongs to the bone whose fitted surface it lies in,
    or within :attr:`ASMSettings.label_band_mm` outside of it where the CT holds bone there.
 """
 
@@ -65,6 +66,9 @@ class ASMSettings:
         Smallest fall of CT number across an edge that counts as the bone's boundary.
     free_form_rounds : int
         Rounds of the free-form refinement (0: the model's instance only).
+    correspondence_rounds, correspondence_noise_mm2 : int, float
+        The final correspondence stage (:func:`pelvicnav.shape.correspond.refine_correspondence`):
+        rounds (0: none) and point-to-plane noise variance (mm^2).
     label_band_mm : float
         Bone voxels this far outside a fitted surface still belong to it.
     masked_reach_mm : float
@@ -84,6 +88,8 @@ class ASMSettings:
     free_form_rounds: int = 16
     free_form_search_mm: float = 2.5
     free_form_smooth: int = 4
+    correspondence_rounds: int = 20
+    correspondence_noise_mm2: float = 0.5
     label_band_mm: float = 1.5
     masked_reach_mm: float = 25.0
 
@@ -725,6 +731,10 @@ def segment_ct(
     V = _free_form(V, prior.faces, levels[-1], surface, opt, inside, threshold_fit)
     V, overlaps = separate_bones(V, prior.faces)
     lap("free_form")
+    if opt.correspondence_rounds:
+        say("correspondence")
+        V = _correspond(V, prior, opt)
+        lap("correspondence")
     say("label map")
     band = opt.label_band_mm if masked is None else opt.masked_reach_mm
     labels = rasterise_labels(data, A, V, prior.faces, threshold, band, masked)
@@ -734,6 +744,19 @@ def segment_ct(
     clock.pop("start")
     clock["total"] = float(sum(clock.values()))
     return ASMResult(vertices=V, weights=weights, labels=labels, quality=quality, seconds=clock)
+
+
+def _correspond(V: NDArray, prior: ShapePrior, opt: ASMSettings) -> NDArray[np.float64]:
+    """Each bone's vertices re-placed on its fitted surface by the model's point-to-plane MAP
+    fit (the surface stays; the free-form stage's slides along it go)."""
+    from pelvicnav.shape.correspond import refine_correspondence
+
+    return np.stack([
+        refine_correspondence(prior.shapes[bone], V[b], prior.faces[b],
+                              noise_mm2=opt.correspondence_noise_mm2,
+                              iterations=opt.correspondence_rounds, max_sigma=opt.max_sigma)
+        for b, bone in enumerate(BONES)
+    ])  # fmt: skip
 
 
 def _fit_image(data: NDArray, threshold: float, masked: float | None):

@@ -10,8 +10,9 @@ For users who already have a segmentation (their own, or TotalSegmentator's, rel
    fit of a similarity and the SSM weights (:meth:`ShapeModel.fit_partial`), the prior relaxed
    from 25 to 1 mm^2 over the rounds;
 4. a free-form refinement: the remaining closest-point displacements, Laplace-smoothed over the
-   mesh, so the surface follows the label beyond the model's span while vertex ``i`` stays the
-   same anatomical point.
+   mesh, so the surface follows the label beyond the model's span;
+5. the vertices re-placed on that surface where the model expects them
+   (:mod:`pelvicnav.shape.correspond`: the free-form stage lets them slide along it).
 
 Han et al. (2020) section 2.1.1 and Han et al. (2019), doi:10.1088/1361-6560/ab1456; T. F.
 Cootes et al., CVIU 61 (1995) 38-59.
@@ -28,6 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from pelvicnav import BONES, LABELS
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.geometry.procrustes import fit_transform
+from pelvicnav.shape.correspond import refine_correspondence
 from pelvicnav.shape.ssm import ShapeModel
 
 __all__ = ["LabelFit", "fit_labels", "label_surface"]
@@ -112,6 +114,7 @@ def fit_labels(
     iterations: int = 25,
     free_form_rounds: int = 16,
     free_form_reach: float = 5.0,
+    correspondence_rounds: int = 20,
 ) -> dict[str, LabelFit]:
     """Corresponded meshes of the three bones fitted to a label map (ours: 1, 2, 3).
 
@@ -130,6 +133,10 @@ def fit_labels(
         4 rounds gave Dice 0.83-0.95 and 16 rounds (with lighter smoothing) 0.87-0.97.
     free_form_reach : float, mm
         Surface points further than this from a vertex do not pull it.
+    correspondence_rounds : int
+        Rounds of the final correspondence stage (0: none): the vertices re-placed on the fitted
+        surface where the model expects them
+        (:func:`pelvicnav.shape.correspond.refine_correspondence`).
 
     Raises
     ------
@@ -169,5 +176,7 @@ def fit_labels(
                 v, np.asarray(faces[b]), surface, tree, rounds=free_form_rounds, smooth=8,
                 reach=free_form_reach,
             )  # fmt: skip
+        if correspondence_rounds:
+            v = refine_correspondence(ssm, v, faces[b], iterations=correspondence_rounds)
         out[bone] = LabelFit(bone=bone, vertices=v, weights=weights, rms_mm=_rms(v, surface, tree))
     return out
