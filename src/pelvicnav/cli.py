@@ -691,8 +691,15 @@ def segment(
     console = Console()
     steps = ["reading", "fitting the model to the labels"]
     if labels is None:
-        steps = ["reading", "pyramid", "initialisation", "profile", "free-form", "correspondence",
-                 "label map"]
+        steps = [
+            "reading",
+            "pyramid",
+            "initialisation",
+            "profile",
+            "free-form",
+            "correspondence",
+            "label map",
+        ]
     try:
         if model is not None and atlas is not None:
             raise ValueError("give --model or --atlas, not both")
