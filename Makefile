@@ -8,7 +8,7 @@ export OMP_WAIT_POLICY ?= passive
 export OPENBLAS_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: venv test lint demo bench study-target-pose clean
+.PHONY: venv test lint demo bench study-target-pose studies-quick clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -35,6 +35,17 @@ bench: $(STAMP)
 # The full leave-one-out target-pose study on the real atlas (about 1.5 min on 2 cores).
 study-target-pose: $(STAMP)
 	$(BIN)/pelvicnav study target-pose --out studies-output/target-pose --workers 2
+
+# Every study's --quick version, one after the other (CI runs this after the tests; goal 2 min).
+QUICK := studies-output/quick
+studies-quick: $(STAMP)
+	rm -rf $(QUICK)
+	start=$$(date +%s); \
+	for s in target-pose registration capture-range dose fov runtime segmentation; do \
+	  $(BIN)/pelvicnav study $$s --out $(QUICK)/$$s --quick > $(QUICK).$$s.log 2>&1 \
+	    || { cat $(QUICK).$$s.log; exit 1; }; \
+	  echo "study $$s --quick: $$(( $$(date +%s) - start )) s so far"; \
+	done
 
 clean:
 	rm -rf $(VENV) demo-output studies-output .pytest_cache .ruff_cache .hypothesis

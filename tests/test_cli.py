@@ -260,6 +260,19 @@ def test_register_bad_input_writes_nothing(tmp_path):
     (tmp_path / "femur.json").write_text(
         json.dumps({"dislocated_bone": "femur", "target_from_current": np.eye(4).tolist()})
     )
+    from pelvicnav.workflow.register import ct_fingerprint
+
+    eye, P = np.eye(4).tolist(), carm.projection_matrix.tolist()
+    fingerprint = ct_fingerprint(ct, A)
+    for name, poses, ct_record, Ps in (
+        ("other_bones", {"sacrum": eye, "left_hip": eye}, fingerprint, [P]),
+        ("other_ct", dict.fromkeys(("sacrum", "left_hip", "right_hip"), eye),
+         ct_fingerprint(ct + 1, A), [P]),
+        ("two_views", dict.fromkeys(("sacrum", "left_hip", "right_hip"), eye), fingerprint, [P, P]),
+    ):  # fmt: skip
+        (tmp_path / f"{name}.json").write_text(
+            json.dumps({"poses": poses, "ct": ct_record, "projection_matrices": Ps})
+        )
     out = tmp_path / "result.json"
     base = ["register", "--ct", str(tmp_path / "ct.nii.gz"), "--out", str(out)]
     views = ["--views", str(tmp_path / "views.json")]
@@ -272,6 +285,14 @@ def test_register_bad_input_writes_nothing(tmp_path):
           str(tmp_path / "broken.json")], "not valid JSON"),
         (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--plan",
           str(tmp_path / "femur.json")], "dislocated_bone 'femur' is not one of"),
+        (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--init",
+          str(tmp_path / "other_bones.json")], "a result for the bones"),
+        (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--init",
+          str(tmp_path / "other_ct.json")], "is for another CT"),
+        (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--init",
+          str(tmp_path / "two_views.json")], "has 2 view(s), this view set 1"),
+        (["--labels", str(tmp_path / "labels.nii.gz"), *views, "--init",
+          str(tmp_path / "femur.json")], "not a pelvicnav result"),
     ):  # fmt: skip
         res = runner.invoke(app, base + args)
         assert res.exit_code == 2, (args, res.output)
@@ -361,6 +382,27 @@ def test_register_a_simulated_case_end_to_end(tmp_path, monkeypatch):
     assert sc.PhotometricInterpretation == "RGB" and sc.Modality == "OT"
     assert (sc.PatientID, sc.StudyInstanceUID) == (xa.PatientID, xa.StudyInstanceUID)
     assert sc.SourceImageSequence[0].ReferencedSOPInstanceUID == xa.SOPInstanceUID
+    # A later frame (the patient moved another 3 mm / 2 deg): --init tracks from this result.
+    assert result["mode"] == "first"
+    M2 = tf.from_params([2.0, -1.5, 1.5], np.deg2rad([1.0, 1.0, -1.0])) @ M
+    views = json.loads((case / "dicom" / "views.json").read_text())
+    for v in views["views"]:
+        v["projection_matrix"] = (np.asarray(v["projection_matrix"]) @ tf.invert(M) @ M2).tolist()
+    (case / "dicom" / "views.json").write_text(json.dumps(views))
+    frame2 = tmp_path / "dicom" / "frame2.json"
+    res = runner.invoke(app, [
+        "register", "--ct", str(case / "dicom" / "ct"), "--labels", str(case / "labels.nii.gz"),
+        "--views", str(case / "dicom" / "views.json"), "--plan", str(plan), "--out", str(frame2),
+        "--init", str(out),
+    ])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    second = json.loads(frame2.read_text())
+    assert second["mode"] == "tracking", second["warnings"]
+    setup = tf.invert(M2) @ np.asarray(truth["poses_world_from_ct"]["sacrum"])
+    for value, bone in enumerate(("sacrum", "left_hip", "right_hip"), start=1):
+        c = tf.apply(world_from_ijk, np.argwhere(labels == value).mean(axis=0)[None])
+        err = np.linalg.norm(tf.apply(np.asarray(second["poses"][bone]), c) - tf.apply(setup, c))
+        assert err < 1.5, (bone, err)
 
 
 def test_model_info_and_bad_model_files(tmp_path):

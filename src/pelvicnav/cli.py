@@ -208,10 +208,17 @@ def study_target_pose(
             "subject segmented on a synthetic CT, prior from the others; OUT/segmentation)."
         ),
     ] = "truth",
+    scheduler: SchedulerOption = None,
+    force: ForceOption = False,
+    quick: Annotated[
+        bool, typer.Option(help="Two test subjects, the left hip, SPM and SPM_CC (for CI).")
+    ] = False,
 ) -> None:
-    """Leave-one-out target-pose study (SSM_single, CM, SPM, SPM_CC) on the atlas."""
+    """Leave-one-out target-pose study (SSM_single, CM, SPM, SPM_CC) on the atlas.
+
+    Runs on dask.distributed (a LocalCluster unless --scheduler); every finished fold is stored in
+    OUT/store.sqlite, so an interrupted run resumes where it stopped."""
     from rich.console import Console
-    from rich.progress import Progress
     from rich.table import Table
 
     from pelvicnav.io.atlas import AtlasNotFoundError
@@ -230,21 +237,26 @@ def study_target_pose(
             raise ValueError(f"--subjects must be between 1 and {a.n_subjects}, got {subjects}")
         settings = TargetPoseSettings(seed=seed, subjects=ids, workers=workers, prior=prior,
                                       segmentation=segmentation)  # fmt: skip
+        if quick:
+            ids = tuple(a.subject_ids[: subjects or 2])
+            settings = TargetPoseSettings.quick(ids, seed=seed, workers=workers, prior=prior,
+                                                segmentation=segmentation)  # fmt: skip
         segmented = None
         if segmentation == "asm":
             from pelvicnav.studies.segmentation import segmented_population
 
-            with Progress() as bar:
+            with _study_progress() as bar:
                 task = bar.add_task("segmenting (ASM)", total=None)
                 segmented = segmented_population(
-                    a, out / "segmentation", subjects or a.n_subjects, seed=seed,
-                    workers=workers, progress=lambda d, t: bar.update(task, completed=d, total=t),
+                    a, out / "segmentation", len(ids) if ids else a.n_subjects, seed=seed,
+                    workers=workers, scheduler=scheduler, force=force,
+                    progress=lambda d, t: bar.update(task, completed=d, total=t),
                 )  # fmt: skip
-        with Progress() as bar:
+        with _study_progress() as bar:
             task = bar.add_task("leave-one-out", total=len(ids or a.subject_ids))
             run_target_pose_study(
-                a, out, settings, segmented=segmented,
-                progress=lambda done, total: bar.update(task, completed=done),
+                a, out, settings, segmented=segmented, scheduler=scheduler, force=force,
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
             )  # fmt: skip
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
@@ -355,13 +367,13 @@ def study_registration(
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
     force: ForceOption = False,
+    quick: Annotated[bool, typer.Option(help="Two cases (for CI).")] = False,
 ) -> None:
     """Registration accuracy on simulated cases (in-/out-of-plane error per bone, PDE for 9 DoF).
 
     Runs on dask.distributed (a LocalCluster unless --scheduler); every finished case is stored in
     OUT/store.sqlite at once, and a re-run skips what is stored."""
     from rich.console import Console
-    from rich.progress import Progress
 
     from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.registration import (
@@ -375,14 +387,15 @@ def study_registration(
             raise ValueError(f"--dof must be 6 or 9, got {dof}")
         if cases < 1:
             raise ValueError(f"--cases must be >= 1, got {cases}")
+        cases = 2 if quick else cases
         a = _population(atlas)
         settings = RegistrationStudySettings.for_dof(dof, n_cases=cases, seed=seed,
                                                      segmentation=segmentation)  # fmt: skip
-        with Progress() as bar:
+        with _study_progress() as bar:
             task = bar.add_task("cases", total=cases)
             rows = run_registration_study(
                 a, out, settings, workers=workers, scheduler=scheduler, force=force,
-                progress=lambda done, total: bar.update(task, completed=done),
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
             )  # fmt: skip
     except (AtlasNotFoundError, ValueError) as err:
         raise _fail(str(err)) from None
@@ -406,7 +419,6 @@ def study_capture_range(
 ) -> None:
     """Capture range (figure 7): success against the initial offset along each C-arm axis."""
     from rich.console import Console
-    from rich.progress import Progress
 
     from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.capture_range import CaptureRangeSettings, run_capture_range_study
@@ -414,7 +426,7 @@ def study_capture_range(
     settings = CaptureRangeSettings.quick(seed) if quick else CaptureRangeSettings(seed=seed)
     try:
         population = _population(atlas)
-        with Progress() as bar:
+        with _study_progress() as bar:
             task = bar.add_task("cases", total=None)
             summary = run_capture_range_study(
                 population, out, settings, workers=workers, scheduler=scheduler, force=force,
@@ -948,6 +960,13 @@ def register(
             "the radiograph's patient and study identifiers."
         ),
     ] = False,
+    init: Annotated[
+        Path | None,
+        typer.Option(
+            help="A previous frame's result.json (same CT, bones and number of views): track "
+            "from its poses and geometry, skipping stage 1 (a full registration if that fails)."
+        ),
+    ] = None,
 ) -> None:
     """Register the three bones of a CT to radiographs (two-stage multi-body 3D-2D).
 
@@ -978,14 +997,14 @@ def register(
             record, result = register_files(
                 ct, labels, views, out, plan=plan, dof=dof, seed=seed, overlay=overlay,
                 overlay_dicom=overlay_dicom, label_scheme=label_scheme, series=series,
-                progress=report,
+                progress=report, init=init,
             )  # fmt: skip
     except ValueError as err:
         raise _fail(str(err)) from None
     status = "[green]converged[/]" if result.converged else "[red]NOT converged[/]"
     console.print(
-        f"wrote {out}: {status}, GO {result.similarity:.3f}, {result.seconds:.1f} s "
-        + ", ".join(f"{s.name} {s.seconds:.1f} s" for s in result.stages)
+        f"wrote {out} ({record['mode']}): {status}, GO {result.similarity:.3f}, "
+        f"{result.seconds:.1f} s " + ", ".join(f"{s.name} {s.seconds:.1f} s" for s in result.stages)
     )
     for w in result.warnings:
         console.print(f"[yellow]warning:[/] {w}")

@@ -140,3 +140,25 @@ def test_study_fits_per_fold_models_never_the_packaged_one(synthetic_atlas, tmp_
     settings = TargetPoseSettings(subjects=(1,), seed=0, methods=("SPM_CC",))
     rows = run_target_pose_study(synthetic_atlas, tmp_path, settings)
     assert rows and all(r["method"] == "SPM_CC" for r in rows)
+
+
+def test_study_runs_on_the_runner_resumable_and_parallel_alike(synthetic_atlas, tmp_path):
+    import sqlite3
+
+    from pelvicnav.studies.store import StoreMismatch
+
+    settings = TargetPoseSettings(subjects=(2, 5), seed=4, methods=("SPM_CC",))
+    run_target_pose_study(synthetic_atlas, tmp_path / "serial", settings)
+    serial = (tmp_path / "serial" / "cases.csv").read_text()
+    # A fold lost from the store (a killed run) is run again; the others are not.
+    store = tmp_path / "serial" / "store.sqlite"
+    with sqlite3.connect(store) as db:
+        db.execute("DELETE FROM cases WHERE study = 'target-pose' AND case_id = 'subject-005'")
+    run_target_pose_study(synthetic_atlas, tmp_path / "serial", settings)
+    assert (tmp_path / "serial" / "cases.csv").read_text() == serial
+    parallel = TargetPoseSettings(subjects=(2, 5), seed=4, methods=("SPM_CC",), workers=2)
+    run_target_pose_study(synthetic_atlas, tmp_path / "parallel", parallel)
+    assert (tmp_path / "parallel" / "cases.csv").read_text() == serial
+    with pytest.raises(StoreMismatch, match="other settings"):
+        other = TargetPoseSettings(subjects=(2, 5), seed=5, methods=("SPM_CC",))
+        run_target_pose_study(synthetic_atlas, tmp_path / "serial", other)

@@ -86,7 +86,6 @@ def run_runtime_case(case: dict) -> dict:
 def _registration_times(case: dict, sim: dict) -> dict:
     from pelvicnav.guide.overlay import bone_edges, overlay_rgb
     from pelvicnav.register.multibody import RegistrationSettings, level_models, register_multibody
-    from pelvicnav.workflow.guide import TRACKING_GENERATIONS
 
     out = {}
     full = RegistrationSettings()
@@ -112,10 +111,7 @@ def _registration_times(case: dict, sim: dict) -> dict:
             c + 3.0 * d / np.linalg.norm(d), np.deg2rad(2.0) * a / np.linalg.norm(a)
         )
         nudge[b] = step @ tf.from_params(-c, [0, 0, 0]) @ res.poses[b]
-    warm = RegistrationSettings(
-        max_generations_stage1=(0, 0), stage2_sweeps=1,
-        max_generations_stage2=TRACKING_GENERATIONS, stage2_restarts=0,
-    )  # fmt: skip
+    warm = RegistrationSettings.tracking()
     t = time.perf_counter()
     again = register_multibody(sim["ct"], sim["labels"], sim["views"], init_poses=nudge,
                                seed=case["seed"] + 1, settings=warm, models=models,

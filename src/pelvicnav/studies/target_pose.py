@@ -3,13 +3,15 @@
 For every test subject, the models are built from the other subjects only. Each innominate in turn
 (and both at once) is the dislocated bone: it is moved by a random rigid dislocation (uniform in
 0-20 mm and 0-10 degrees about its centroid, seeded) and every method estimates where it belongs
-from the observed bones. The ground-truth meshes stand in for the segmentations.
+from the observed bones. The ground-truth meshes stand in for the segmentations (or, with
+``segmentation="asm"``, the active shape model's).
 
 Error of an estimate: ``eps = T_true^-1 T_est`` with each bone's pose taken as the CT axes placed at
 the true centroid; translation = displacement of the bone's centroid, rotation = angle of ``eps``;
 also the mean vertex displacement.
 
-Outputs (in ``out``): ``cases.csv`` (one row per subject x scenario x method x estimated bone, with
+Outputs (in ``out``): the runner's ``store.sqlite`` and ``results.csv`` (one row per fold and
+estimate, resumable), ``cases.csv`` (one row per subject x scenario x method x estimated bone, with
 the true and estimated 4x4 poses flattened row-major), ``summary.csv``, ``comparisons.csv`` (paired
 Wilcoxon signed-rank and t-tests), ``target_pose_boxplot.png`` and ``settings.json``.
 """
@@ -17,6 +19,8 @@ Wilcoxon signed-rank and t-tests), ``target_pose_boxplot.png`` and ``settings.js
 from __future__ import annotations
 
 import csv
+import hashlib
+import io
 import json
 import os
 import time
@@ -124,6 +128,13 @@ class TargetPoseSettings:
     workers: int = 1
     frame_scale: bool | None = None
     segmentation: str = "truth"
+
+    @classmethod
+    def quick(cls, subject_ids, seed: int = 0, **kw) -> TargetPoseSettings:
+        """Two test subjects, the left hip, SPM and SPM_CC (for CI)."""
+        ids = tuple(int(i) for i in subject_ids[:2])
+        return cls(seed=seed, subjects=ids, scenarios=("left_hip",), methods=("SPM", "SPM_CC"),
+                   **kw)  # fmt: skip
 
     def __post_init__(self) -> None:
         for s in self.scenarios:
@@ -277,29 +288,99 @@ def _fold(
     return rows
 
 
-_WORKER_STATE: dict = {}
+_CACHE: dict = {}
 
 
-def _init_worker(state: dict) -> None:
-    _WORKER_STATE.update(state)
+def _inputs(path: str, digest: str) -> dict:
+    """The study's input arrays (``OUT/inputs.npz``), read once per worker."""
+    key = ("inputs", path, digest)
+    if key not in _CACHE:
+        _CACHE.clear()  # one study's inputs at a time
+        with np.load(path) as f:
+            _CACHE[key] = {k: f[k] for k in f.files}
+    return _CACHE[key]
 
 
-def _subject_gaps(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def run_gaps_case(case: dict) -> dict:
+    """Joint gaps of one subject (they depend on it alone), saved to ``case["folder"]``."""
+    from pelvicnav.io.atomic import write_bytes
     from pelvicnav.pose.collision import subject_joint_gaps
     from pelvicnav.pose.joint_space import subject_plane_gaps
 
-    V, faces = _WORKER_STATE["vertices"], _WORKER_STATE["faces"]
-    return subject_joint_gaps(V[n], faces), subject_plane_gaps(V[n], faces)
+    data = _inputs(case["inputs"], case["digest"])
+    faces = tuple(data[f"faces_{b}"] for b in range(3))
+    V = data["vertices"][case["index"]]
+    buf = io.BytesIO()
+    np.savez(buf, joint=subject_joint_gaps(V, faces), plane=subject_plane_gaps(V, faces))
+    write_bytes(Path(case["folder"]) / f"{case['index']:03d}.npz", buf.getvalue())
+    return {"subject_id": int(data["subject_ids"][case["index"]])}
 
 
-def _stack_gaps(pairs: list) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
+def _gaps(folder: str, n: int, digest: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    key = ("gaps", folder, digest)
+    if key not in _CACHE:
+        pairs = []
+        for k in range(n):
+            with np.load(Path(folder) / f"{k:03d}.npz") as f:
+                pairs.append((f["joint"], f["plane"]))
+        _CACHE[key] = (np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs]))
+    return _CACHE[key]
 
 
-def _run_fold(test: int) -> list[dict]:
-    s = _WORKER_STATE
-    return _fold(s["vertices"], s["faces"], s["ids"], test, s["settings"], s["gaps"],
-                 s.get("segmented"))  # fmt: skip
+def run_target_pose_case(case: dict) -> list[dict]:
+    """One left-out subject: every scenario and method (the runner's case function)."""
+    data = _inputs(case["inputs"], case["digest"])
+    V = data["vertices"]
+    faces = tuple(data[f"faces_{b}"] for b in range(3))
+    ids = tuple(int(i) for i in data["subject_ids"])
+    settings = TargetPoseSettings(**case["settings"])
+    gaps = _gaps(case["gaps"], len(V), case["digest"])
+    return _fold(V, faces, ids, case["test"], settings, gaps, data.get("segmented"))
+
+
+def _write_inputs(out: Path, atlas, segmented: NDArray | None) -> str:
+    """Write the arrays every case reads; returns their digest (part of the store's key)."""
+    from pelvicnav.io.atomic import write_bytes
+
+    arrays = {
+        "vertices": np.asarray(atlas.vertices, dtype=np.float64),
+        "subject_ids": np.asarray(atlas.subject_ids, dtype=np.int64),
+        **{f"faces_{b}": np.asarray(atlas.faces[b], dtype=np.int64) for b in range(3)},
+    }
+    if segmented is not None:
+        arrays["segmented"] = np.asarray(segmented, dtype=np.float64)
+    digest = hashlib.sha256()
+    for k in sorted(arrays):
+        digest.update(k.encode())
+        digest.update(np.ascontiguousarray(arrays[k]).tobytes())
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    write_bytes(out / "inputs.npz", buf.getvalue())
+    return digest.hexdigest()[:16]
+
+
+def target_pose_studies(atlas, out: Path, settings: TargetPoseSettings, segmented=None):
+    """The runner's two studies: joint gaps per subject, then one case per left-out subject."""
+    from pelvicnav.studies.runner import Study
+
+    tests = (
+        list(range(atlas.n_subjects))
+        if settings.subjects is None
+        else [atlas.subject_index(s) for s in settings.subjects]
+    )
+    digest = _write_inputs(out, atlas, segmented)
+    inputs, folder = str(out / "inputs.npz"), out / "gaps"
+    folder.mkdir(parents=True, exist_ok=True)
+    gaps = Study("target-pose-gaps", {"inputs": digest},
+                 tuple({"case_id": f"gaps-{k:03d}", "inputs": inputs, "digest": digest, "index": k,
+                        "folder": str(folder)} for k in range(atlas.n_subjects)),
+                 run_gaps_case)  # fmt: skip
+    cfg = {k: v for k, v in asdict(settings).items() if k != "workers"}
+    cases = tuple({"case_id": f"subject-{atlas.subject_ids[t]:03d}", "inputs": inputs,
+                   "digest": digest, "gaps": str(folder), "test": t, "settings": asdict(settings)}
+                  for t in tests)  # fmt: skip
+    main = Study("target-pose", {**cfg, "inputs": digest}, cases, run_target_pose_case)
+    return gaps, main, tests
 
 
 def run_target_pose_study(
@@ -309,8 +390,15 @@ def run_target_pose_study(
     *,
     progress: Callable[[int, int], None] | None = None,
     segmented: NDArray[np.float64] | None = None,
+    scheduler: str | None = None,
+    force: bool = False,
 ) -> list[dict]:
-    """Run the leave-one-out study and write its outputs.
+    """Run the leave-one-out study on the study runner and write its outputs.
+
+    Every fold is a case of :mod:`pelvicnav.studies.runner`: stored in ``OUT/store.sqlite`` as it
+    finishes (a re-run skips it), on a dask ``LocalCluster`` of ``settings.workers`` processes
+    (one: in this process) or on ``scheduler``. The cases read ``OUT/inputs.npz`` (a cluster's
+    workers need ``OUT`` on a shared file system).
 
     Parameters
     ----------
@@ -319,55 +407,34 @@ def run_target_pose_study(
         Output folder (created).
     settings : TargetPoseSettings
     progress : callable(done, total), optional
+        Folds done (after the joint gaps of every subject).
     segmented : (n_subjects, 3, n_vertices, 3) float, optional
         With ``settings.segmentation == "asm"``: each tested subject's segmented meshes.
+    scheduler : str, optional
+        Address of a running dask scheduler.
+    force : bool
+        Start afresh when ``OUT`` holds the study run with other settings.
 
     Returns
     -------
     list of dict
         The rows of ``cases.csv``.
     """
+    from pelvicnav.studies.runner import flatten, run_study
+
     if (segmented is None) != (settings.segmentation == "truth"):
         raise ValueError("segmented meshes go with segmentation='asm', and only with it")
     if atlas.n_subjects < 5:
         raise ValueError(f"the study needs at least 5 subjects, the atlas has {atlas.n_subjects}")
-    tests = (
-        list(range(atlas.n_subjects))
-        if settings.subjects is None
-        else [atlas.subject_index(s) for s in settings.subjects]
-    )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    V = atlas.vertices
-    faces = tuple(atlas.faces)
-    state = {"vertices": V, "faces": faces, "ids": atlas.subject_ids, "settings": settings,
-             "segmented": segmented}  # fmt: skip
-    rows: list[dict] = []
-    if settings.workers == 1:
-        _init_worker(state)
-        # Joint gaps depend on each subject alone: computed once, sliced per fold (no leak).
-        _WORKER_STATE["gaps"] = _stack_gaps(list(map(_subject_gaps, range(atlas.n_subjects))))
-        for k, test in enumerate(tests):
-            rows.extend(_run_fold(test))
-            if progress:
-                progress(k + 1, len(tests))
-    else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
-        ctx = mp.get_context("fork")
-        with ProcessPoolExecutor(
-            settings.workers, mp_context=ctx, initializer=_init_worker, initargs=(state,)
-        ) as pool:
-            state["gaps"] = _stack_gaps(list(pool.map(_subject_gaps, range(atlas.n_subjects))))
-        with ProcessPoolExecutor(
-            settings.workers, mp_context=ctx, initializer=_init_worker, initargs=(state,)
-        ) as pool:
-            for k, fold_rows in enumerate(pool.map(_run_fold, tests)):
-                rows.extend(fold_rows)
-                if progress:
-                    progress(k + 1, len(tests))
+    gaps, study, tests = target_pose_studies(atlas, out, settings, segmented)
+    serial = settings.workers == 1 and scheduler is None
+    runner = {"scheduler": scheduler, "force": force, "workers": 0 if serial else settings.workers}
+    run_study(gaps, out / "gaps", **runner)
+    results = run_study(study, out, progress=progress, **runner)
+    rows = [{k: v for k, v in r.items() if k != "case_seconds"} for r in flatten(results)]
     seconds = time.perf_counter() - t0
     summary = summarise(rows, settings)
     comparisons = compare_methods(rows, settings)

@@ -33,10 +33,6 @@ from pelvicnav import BONES, LABELS
 __all__ = ["FrameResult", "guide_frame", "read_session"]
 
 SESSION_FORMAT = "pelvicnav-session"
-# A later frame: stage 2 only, one sweep, both pyramid levels (15 coarse + 20 fine generations),
-# from the previous frame's poses. Fine level alone did not converge after a 7 mm reduction step
-# between frames in the demo; both levels did, in ~4 s.
-TRACKING_GENERATIONS = (15, 20)
 
 
 @dataclass(frozen=True)
@@ -181,9 +177,7 @@ def _register(hu, A, labels, vs, plan, previous, seed, dof, progress):
     models = level_models(volume, labels, full.factors)
     dislocated = plan.dislocated[0] if len(plan.dislocated) == 1 else None
     if previous is not None:
-        warm = RegistrationSettings(max_generations_stage1=(0, 0),
-                                    max_generations_stage2=TRACKING_GENERATIONS, stage2_sweeps=1,
-                                    stage2_restarts=0)  # fmt: skip
+        warm = RegistrationSettings.tracking()
         result = register_multibody(volume, labels, rv, init_poses=previous, seed=seed,
                                     settings=warm, models=models,
                                     dislocated=dislocated)  # fmt: skip

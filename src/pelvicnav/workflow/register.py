@@ -6,10 +6,18 @@ the view set and an optional plan (``dislocated_bone``, ``target_from_current``,
 (:func:`pelvicnav.register.multibody.register_multibody`) and writes ``result.json``,
 ``transforms/*.tfm`` beside it and, if asked, the overlays. Nothing is written when an input is
 refused.
+
+Tracking: with ``init`` (a previous ``result.json`` of the same CT, bones and number of views)
+the registration starts from that frame's poses and geometry, skips stage 1 and refines locally
+(:meth:`~pelvicnav.register.multibody.RegistrationSettings.tracking`); if that does not converge
+it falls back to a full registration. ``result.json`` says which (``mode``: ``first``,
+``tracking`` or ``re-registered``) and carries the CT's fingerprint, which ``init`` is checked
+against.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -18,7 +26,59 @@ import numpy as np
 
 from pelvicnav import BONES, LABELS
 
-__all__ = ["read_register_plan", "register_files"]
+__all__ = ["ct_fingerprint", "read_init", "read_register_plan", "register_files"]
+
+
+def ct_fingerprint(data, world_from_ijk) -> dict:
+    """What identifies a CT in ``result.json``: shape, affine and a digest of every 4th voxel."""
+    arr = np.ascontiguousarray(np.asarray(data)[::4, ::4, ::4], dtype=np.float32)
+    return {"shape": [int(n) for n in np.shape(data)],
+            "world_from_ijk": np.round(np.asarray(world_from_ijk, float), 6).tolist(),
+            "digest": hashlib.sha256(arr.tobytes()).hexdigest()[:16]}  # fmt: skip
+
+
+def read_init(path: str | os.PathLike, *, n_views: int, ct: dict) -> dict:
+    """A previous frame's ``result.json`` to track from: ``{"poses", "projections"}``.
+
+    Raises
+    ------
+    ValueError
+        Naming ``path``: not a result, a result for other bones, for another CT (its fingerprint,
+        :func:`ct_fingerprint`, differs) or for another number of views.
+    """
+    from pelvicnav.io.jsonfile import read_json
+
+    doc = read_json(path)
+    if not isinstance(doc, dict) or not isinstance(doc.get("poses"), dict):
+        raise ValueError(f"{path}: not a pelvicnav result (no 'poses')")
+    if set(doc["poses"]) != set(BONES):
+        raise ValueError(f"{path}: a result for the bones {sorted(doc['poses'])}; this "
+                         f"registration has {list(BONES)}")  # fmt: skip
+    theirs = doc.get("ct")
+    if not isinstance(theirs, dict):
+        raise ValueError(
+            f"{path}: the result does not say which CT it registered (no 'ct' record; results "
+            "of this version do); register without --init"
+        )
+    same = theirs.get("shape") == ct["shape"] and theirs.get("digest") == ct["digest"]
+    A = np.asarray(theirs.get("world_from_ijk", np.zeros((4, 4))), dtype=float)
+    if not same or A.shape != (4, 4) or np.abs(A - np.asarray(ct["world_from_ijk"])).max() > 1e-3:
+        raise ValueError(f"{path}: the result is for another CT (shape {theirs.get('shape')}, "
+                         f"digest {theirs.get('digest')}; this CT: {ct['shape']}, "
+                         f"{ct['digest']})")  # fmt: skip
+    Ps = doc.get("projection_matrices", [])
+    if len(Ps) != n_views:
+        raise ValueError(f"{path}: the result has {len(Ps)} view(s), this view set {n_views}")
+    poses = {}
+    for b in BONES:
+        T = np.asarray(doc["poses"][b], dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"{path}: the pose of {b} is not a finite 4 x 4 matrix")
+        poses[b] = T
+    projections = tuple(np.asarray(P, dtype=float) for P in Ps)
+    if any(P.shape != (3, 4) or not np.all(np.isfinite(P)) for P in projections):
+        raise ValueError(f"{path}: projection_matrices must be finite 3 x 4 matrices")
+    return {"poses": poses, "projections": projections}
 
 
 def read_register_plan(path: str | os.PathLike) -> dict:
@@ -59,8 +119,12 @@ def register_files(
     label_scheme: str = "ours",
     series: str | None = None,
     progress=None,
+    init: str | os.PathLike | None = None,
 ):
     """Register and write the outputs; returns ``(record, result)``.
+
+    ``init``: a previous frame's ``result.json`` to track from (see the module's notes). With
+    ``dof=9`` its estimated geometry stands for the views' and the poses are refined in 6 DoF.
 
     Raises
     ------
@@ -85,6 +149,8 @@ def register_files(
     the_plan = read_register_plan(plan) if plan is not None else None
     vs, _ = read_views(views)
     data, affine, _, lab = read_ct_and_bones(ct, labels, label_scheme, series)
+    fingerprint = ct_fingerprint(data, affine)
+    previous = None if init is None else read_init(init, n_views=len(vs), ct=fingerprint)
     rv = RegistrationViews(tuple(v.image for v in vs), tuple(v.projection_matrix for v in vs),
                            tuple(tuple(v.pixel_spacing) for v in vs))  # fmt: skip
     settings = RegistrationSettings(dof=dof)
@@ -93,11 +159,23 @@ def register_files(
         models = level_models(volume, lab, settings.factors)
     except ValueError as err:
         raise ValueError(f"{labels}: {err}") from None
-    result = register_multibody(
-        volume, lab, rv, seed=seed, settings=settings, progress=progress, models=models,
-        dislocated=None if the_plan is None else the_plan["dislocated_bone"],
-    )  # fmt: skip
-    record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed}
+    dislocated = None if the_plan is None else the_plan["dislocated_bone"]
+    result, mode = None, "first"
+    if previous is not None:
+        tracked = RegistrationViews(rv.images, previous["projections"] if dof == 9 else
+                                    rv.projections, rv.pixel_spacing)  # fmt: skip
+        result = register_multibody(volume, lab, tracked, init_poses=previous["poses"],
+                                    seed=seed, settings=RegistrationSettings.tracking(),
+                                    models=models, dislocated=dislocated)  # fmt: skip
+        mode = "tracking" if result.converged else "re-registered"
+    if result is None or not result.converged:
+        result = register_multibody(volume, lab, rv, seed=seed, settings=settings,
+                                    progress=progress, models=models,
+                                    dislocated=dislocated)  # fmt: skip
+    record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed,
+              "mode": mode, "ct": fingerprint}  # fmt: skip
+    if init is not None:
+        record["init"] = str(init)
     record |= result.to_json()
     if the_plan is not None:
         record["residual"] = _residual(result, the_plan, volume, lab)
