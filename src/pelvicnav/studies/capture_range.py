@@ -148,6 +148,7 @@ def run_capture_range_study(
     """Run the study (runner options: ``workers``, ``scheduler``, ``force``, ``progress``) and
     write ``results.csv``, ``summary.md`` (with the paper's numbers) and ``capture_range.png``."""
     from pelvicnav.io.atomic import write_text
+    from pelvicnav.studies.flags import flag_counts, flag_line
 
     cfg = settings or CaptureRangeSettings()
     rows = flatten(run_study(capture_range_study(population, cfg), out, **runner))
@@ -163,6 +164,8 @@ def run_capture_range_study(
         "",
         "x, y: in the detector plane of the first view; z: along its beam.",
         "Paper (Han et al. 2020): " + "; ".join(f"{k} {v}" for k, v in PAPER.items()),
+        "",
+        flag_line(flag_counts(rows, "worst_error_mm")) + " (error: the worst bone's centroid)",
         "",
     ]
     write_text(out / "summary.md", "\n".join(lines))

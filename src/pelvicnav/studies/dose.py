@@ -133,7 +133,11 @@ def run_dose_study(
                      f"({s['tre_iqr_mm']:.2f}) | {s['tre_worst_mm']:.2f} | "
                      f"{s['success_rate']:.0%} |")  # fmt: skip
     reached = "none" if good is None else f"{good:g} uGy/frame"
-    lines += ["", f"Median TRE < {cfg.success_mm:g} mm down to {reached}.", f"Paper: {PAPER}.", ""]
+    from pelvicnav.studies.flags import flag_counts, flag_line
+
+    flags = flag_counts(rows, [f"{b}_centroid_mm" for b in BONES])
+    lines += ["", f"Median TRE < {cfg.success_mm:g} mm down to {reached}.", f"Paper: {PAPER}.",
+              "", flag_line(flags) + " (error: at each bone's centroid)", ""]  # fmt: skip
     out = Path(out)
     write_text(out / "summary.md", "\n".join(lines))
     _figure(rows, out / "dose.png")

@@ -170,7 +170,11 @@ def run_fov_study(
                      f"({s['pde_iqr_mm']:.2f}) | {s['pde_worst_mm']:.2f} | "
                      f"{s['success_rate']:.0%} |")  # fmt: skip
     reached = "none" if good is None else f"{good:g} x {good:g} mm"
-    lines += ["", f"Median PDE < {cfg.success_mm:g} mm down to {reached}.", f"Paper: {PAPER}.", ""]
+    from pelvicnav.studies.flags import flag_counts, flag_line
+
+    flags = flag_counts(rows, "pde_mm")
+    lines += ["", f"Median PDE < {cfg.success_mm:g} mm down to {reached}.", f"Paper: {PAPER}.",
+              "", flag_line(flags) + " (error: PDE of the bones in the field)", ""]  # fmt: skip
     out = Path(out)
     write_text(out / "summary.md", "\n".join(lines))
     _figure(rows, out / "fov.png")

@@ -247,7 +247,9 @@ def run_registration_study(
                         progress=progress)  # fmt: skip
     rows = flatten(results)
     out = Path(out)
-    write_text(out / "summary.csv", _csv(summarise(rows)))
+    summary = summarise(rows)
+    write_text(out / "summary.csv", _csv(summary))
+    write_text(out / "summary.md", _markdown(summary, rows))
     write_text(out / "settings.json", json.dumps(study.settings, indent=2, default=str))
     return rows
 
@@ -269,6 +271,22 @@ def summarise(rows: list[dict]) -> list[dict]:
         row["seconds_median"] = round(float(np.median([r["seconds"] for r in sel])), 1)
         out.append(row)
     return out
+
+
+def _markdown(summary: list[dict], rows: list[dict]) -> str:
+    """``summary.md``: medians per bone, the flag's record."""
+    from pelvicnav.studies.flags import flag_counts, flag_line
+
+    key = "pde_mm" if any("pde_mm" in r for r in rows) else "error_mm"
+    lines = ["# Registration accuracy", "",
+             "| bone | n | in-plane median (max), mm | out-of-plane median (max), mm | "
+             f"{key} median (max) | converged |", "|---|---|---|---|---|---|"]  # fmt: skip
+    for s in summary:
+        cells = [f"{s.get(f'{k}_median', float('nan')):.2f} ({s.get(f'{k}_max', float('nan')):.2f})"
+                 for k in ("in_plane_mm", "out_of_plane_mm", key)]  # fmt: skip
+        lines.append(f"| {s['bone']} | {s['n']} | " + " | ".join(cells) + f" | {s['converged']} |")
+    lines += ["", flag_line(flag_counts(rows, key)), ""]
+    return "\n".join(lines)
 
 
 def _csv(rows: list[dict]) -> str:

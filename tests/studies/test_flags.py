@@ -1,0 +1,26 @@
+"""The flag's record: gross errors flagged, flagged registrations that were fine."""
+
+from pelvicnav.studies.flags import flag_counts, flag_line
+
+
+def test_flag_counts_per_registration():
+    rows = [
+        # case a: one bone 6 mm off, flagged -> a gross error, flagged
+        {"case_id": "a", "error_mm": 0.2, "converged": False},
+        {"case_id": "a", "error_mm": 6.0, "converged": False},
+        # case b: fine, flagged -> a false alarm (flags as CSV text)
+        {"case_id": "b", "error_mm": 0.3, "converged": "False"},
+        # case c: 5 mm off, not flagged -> a missed gross error
+        {"case_id": "c", "error_mm": 5.0, "converged": True},
+        # case d: fine, not flagged; case e: no answer (NaN) -> gross
+        {"case_id": "d", "error_mm": 0.1, "converged": "True"},
+        {"case_id": "e", "error_mm": float("nan"), "converged": False},
+    ]
+    c = flag_counts(rows, "error_mm")
+    assert c == {"registrations": 5, "gross": 3, "gross_flagged": 2, "flagged": 3,
+                 "flagged_fine": 1}  # fmt: skip
+    assert "3 of 5 registrations had an error over 4 mm, 2 of them flagged" in flag_line(c)
+    # several error columns: the worst counts
+    two = [{"case_id": "x", "l": 1.0, "r": 4.5, "converged": True}]
+    assert flag_counts(two, ["l", "r"])["gross"] == 1
+    assert flag_counts(two, ["l", "r"], limit_mm=5.0)["gross"] == 0
