@@ -40,11 +40,11 @@ study-target-pose: $(STAMP)
 # Every study's --quick version, one after the other (CI runs this after the tests; goal 2 min).
 QUICK := studies-output/quick
 studies-quick: $(STAMP)
-	rm -rf $(QUICK)
+	rm -rf $(QUICK) && mkdir -p $(QUICK)
 	start=$$(date +%s); \
 	for s in target-pose registration capture-range dose fov runtime segmentation; do \
-	  $(BIN)/pelvicnav study $$s --out $(QUICK)/$$s --quick > $(QUICK).$$s.log 2>&1 \
-	    || { cat $(QUICK).$$s.log; exit 1; }; \
+	  $(BIN)/pelvicnav study $$s --out $(QUICK)/$$s --quick > $(QUICK)/$$s.log 2>&1 \
+	    || { cat $(QUICK)/$$s.log; exit 1; }; \
 	  echo "study $$s --quick: $$(( $$(date +%s) - start )) s so far"; \
 	done
 
