@@ -235,12 +235,10 @@ def study_target_pose(
         ids = None if subjects is None else tuple(a.subject_ids[:subjects])
         if subjects is not None and not 1 <= subjects <= a.n_subjects:
             raise ValueError(f"--subjects must be between 1 and {a.n_subjects}, got {subjects}")
-        settings = TargetPoseSettings(seed=seed, subjects=ids, workers=workers, prior=prior,
-                                      segmentation=segmentation)  # fmt: skip
-        if quick:
-            ids = tuple(a.subject_ids[: subjects or 2])
-            settings = TargetPoseSettings.quick(ids, seed=seed, workers=workers, prior=prior,
-                                                segmentation=segmentation)  # fmt: skip
+        common = {"seed": seed, "workers": workers, "prior": prior, "segmentation": segmentation}
+        settings = (TargetPoseSettings.quick(ids or a.subject_ids, **common) if quick
+                    else TargetPoseSettings(subjects=ids, **common))  # fmt: skip
+        ids = settings.subjects  # only the tested subjects are segmented
         segmented = None
         if segmentation == "asm":
             from pelvicnav.studies.segmentation import segmented_population

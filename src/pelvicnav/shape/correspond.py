@@ -22,15 +22,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.geometry.procrustes import fit_transform
+from pelvicnav.shape.mesh import face_normals
 from pelvicnav.shape.ssm import ShapeModel
 
 __all__ = ["refine_correspondence"]
-
-
-def _face_normals(vertices: NDArray, faces: NDArray) -> NDArray[np.float64]:
-    n = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
-                 vertices[faces[:, 2]] - vertices[faces[:, 0]])  # fmt: skip
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
 def _closest(points: NDArray, vertices: NDArray, faces: NDArray, normals: NDArray):
@@ -91,7 +86,7 @@ def refine_correspondence(
         raise ValueError(f"mesh {V.shape} does not match the model's {ssm.mean.shape}")
     if noise_mm2 <= 0 or iterations < 1:
         raise ValueError("noise_mm2 must be positive and iterations at least 1")
-    normals = _face_normals(V, F)
+    normals = face_normals(V, F)
     P = ssm.modes.reshape(-1, 3, ssm.n_modes)
     limit = max_sigma * np.sqrt(ssm.variances)
     T = fit_transform(ssm.mean, V, scale=True)

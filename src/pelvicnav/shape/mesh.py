@@ -17,6 +17,7 @@ __all__ = [
     "close_mesh",
     "edge_adjacency",
     "edge_counts",
+    "face_normals",
     "inpaint_vertices",
     "is_closed",
     "self_intersections",
@@ -35,6 +36,21 @@ def signed_volume(vertices: ArrayLike, faces: ArrayLike) -> float:
     return float(np.sum(np.einsum("ij,ij->i", a - v.mean(axis=0), np.cross(b - a, c - a))) / 6.0)
 
 
+def face_normals(vertices: ArrayLike, faces: ArrayLike) -> NDArray[np.float64]:
+    """Unit triangle normals, oriented outwards (positive enclosed volume); ``(m, 3)``."""
+    fn = _area_normals(np.asarray(vertices, dtype=np.float64), np.asarray(faces))
+    norm = np.linalg.norm(fn, axis=1, keepdims=True)
+    return fn / np.maximum(norm, 1e-12)
+
+
+def _area_normals(v: NDArray, f: NDArray) -> NDArray[np.float64]:
+    """Triangle normals times twice their area, oriented outwards."""
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    fn = np.cross(b - a, c - a)
+    # The sign of the volume is reliable even on meshes with small holes (the raw atlas meshes).
+    return -fn if signed_volume(v, f) < 0 else fn
+
+
 def vertex_normals(vertices: ArrayLike, faces: ArrayLike) -> NDArray[np.float64]:
     """Area-weighted unit vertex normals, oriented outwards (positive enclosed volume).
 
@@ -50,11 +66,7 @@ def vertex_normals(vertices: ArrayLike, faces: ArrayLike) -> NDArray[np.float64]
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    fn = np.cross(b - a, c - a)  # twice the area times the unit normal
-    # The sign of the volume is reliable even on meshes with small holes (the raw atlas meshes).
-    if signed_volume(v, f) < 0:
-        fn = -fn
+    fn = _area_normals(v, f)
     n = np.zeros_like(v)
     for k in range(3):
         np.add.at(n, f[:, k], fn)

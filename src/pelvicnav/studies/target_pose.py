@@ -131,7 +131,7 @@ class TargetPoseSettings:
 
     @classmethod
     def quick(cls, subject_ids, seed: int = 0, **kw) -> TargetPoseSettings:
-        """Two test subjects, the left hip, SPM and SPM_CC (for CI)."""
+        """The first two of ``subject_ids`` tested, the left hip, SPM and SPM_CC (for CI)."""
         ids = tuple(int(i) for i in subject_ids[:2])
         return cls(seed=seed, subjects=ids, scenarios=("left_hip",), methods=("SPM", "SPM_CC"),
                    **kw)  # fmt: skip

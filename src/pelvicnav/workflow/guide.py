@@ -163,29 +163,17 @@ def _previous(session: Path, frames: list, n_views: int, dof: int) -> dict | Non
 
 def _register(hu, A, labels, vs, plan, previous, seed, dof, progress):
     from pelvicnav.drr.volume import Volume
-    from pelvicnav.register.multibody import (
-        RegistrationSettings,
-        RegistrationViews,
-        level_models,
-        register_multibody,
-    )
+    from pelvicnav.register.multibody import RegistrationSettings, level_models
+    from pelvicnav.workflow.register import registration_views, track_or_register
 
-    rv = RegistrationViews(tuple(v.image for v in vs), tuple(v.projection_matrix for v in vs),
-                           tuple(tuple(v.pixel_spacing) for v in vs))  # fmt: skip
-    full = RegistrationSettings(dof=dof)
     volume = Volume(np.asarray(hu, dtype=np.float32), A)
-    models = level_models(volume, labels, full.factors)
-    dislocated = plan.dislocated[0] if len(plan.dislocated) == 1 else None
-    if previous is not None:
-        warm = RegistrationSettings.tracking()
-        result = register_multibody(volume, labels, rv, init_poses=previous, seed=seed,
-                                    settings=warm, models=models,
-                                    dislocated=dislocated)  # fmt: skip
-        if result.converged:
-            return result, "tracking", models[-1]
-    result = register_multibody(volume, labels, rv, seed=seed, settings=full, models=models,
-                                dislocated=dislocated, progress=progress)  # fmt: skip
-    return result, ("first" if previous is None else "re-registered"), models[-1]
+    models = level_models(volume, labels, RegistrationSettings(dof=dof).factors)
+    result, mode = track_or_register(
+        volume, labels, registration_views(vs), models, dof=dof, seed=seed,
+        dislocated=plan.dislocated[0] if len(plan.dislocated) == 1 else None,
+        previous=None if previous is None else {"poses": previous}, progress=progress,
+    )  # fmt: skip
+    return result, mode, models[-1]
 
 
 def _residuals(result, plan, labels, A) -> dict:

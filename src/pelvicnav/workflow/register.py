@@ -26,7 +26,52 @@ import numpy as np
 
 from pelvicnav import BONES, LABELS
 
-__all__ = ["ct_fingerprint", "read_init", "read_register_plan", "register_files"]
+__all__ = [
+    "ct_fingerprint",
+    "read_init",
+    "read_register_plan",
+    "register_files",
+    "registration_views",
+    "track_or_register",
+]
+
+
+def registration_views(vs):
+    """The register stage's view type from read views (images, matrices, pixel spacings)."""
+    from pelvicnav.register.multibody import RegistrationViews
+
+    return RegistrationViews(tuple(v.image for v in vs), tuple(v.projection_matrix for v in vs),
+                             tuple(tuple(v.pixel_spacing) for v in vs))  # fmt: skip
+
+
+def track_or_register(volume, labels, views, models, *, dof, seed, dislocated, previous=None,
+                      progress=None):  # fmt: skip
+    """Track from a previous frame, or register afresh; returns ``(result, mode)``.
+
+    ``previous``: ``{"poses": bone -> (4, 4), "projections": optional}`` (a 9-DoF frame's
+    estimated geometry stands for the views'). Tracking uses
+    :meth:`~pelvicnav.register.multibody.RegistrationSettings.tracking`; when it does not
+    converge, or with no previous frame, a full registration follows. ``mode`` is ``first``,
+    ``tracking`` or ``re-registered``.
+    """
+    from pelvicnav.register.multibody import (
+        RegistrationSettings,
+        RegistrationViews,
+        register_multibody,
+    )
+
+    if previous is not None:
+        Ps = previous.get("projections") if dof == 9 else None
+        tracked = views if Ps is None else RegistrationViews(views.images, Ps, views.pixel_spacing)
+        result = register_multibody(volume, labels, tracked, init_poses=previous["poses"],
+                                    seed=seed, settings=RegistrationSettings.tracking(),
+                                    models=models, dislocated=dislocated)  # fmt: skip
+        if result.converged:
+            return result, "tracking"
+    result = register_multibody(volume, labels, views, seed=seed,
+                                settings=RegistrationSettings(dof=dof), progress=progress,
+                                models=models, dislocated=dislocated)  # fmt: skip
+    return result, ("first" if previous is None else "re-registered")
 
 
 def ct_fingerprint(data, world_from_ijk) -> dict:
@@ -136,12 +181,7 @@ def register_files(
     from pelvicnav.io.atomic import write_text
     from pelvicnav.io.itk_transform import write_pose_transforms
     from pelvicnav.io.views import read_views
-    from pelvicnav.register.multibody import (
-        RegistrationSettings,
-        RegistrationViews,
-        level_models,
-        register_multibody,
-    )
+    from pelvicnav.register.multibody import RegistrationSettings, level_models
     from pelvicnav.workflow.inputs import read_ct_and_bones
 
     if dof not in (6, 9):
@@ -151,27 +191,16 @@ def register_files(
     data, affine, _, lab = read_ct_and_bones(ct, labels, label_scheme, series)
     fingerprint = ct_fingerprint(data, affine)
     previous = None if init is None else read_init(init, n_views=len(vs), ct=fingerprint)
-    rv = RegistrationViews(tuple(v.image for v in vs), tuple(v.projection_matrix for v in vs),
-                           tuple(tuple(v.pixel_spacing) for v in vs))  # fmt: skip
     settings = RegistrationSettings(dof=dof)
     volume = Volume(np.asarray(data, dtype=np.float32), affine)
     try:  # one set of bone models for registration and overlays
         models = level_models(volume, lab, settings.factors)
     except ValueError as err:
         raise ValueError(f"{labels}: {err}") from None
-    dislocated = None if the_plan is None else the_plan["dislocated_bone"]
-    result, mode = None, "first"
-    if previous is not None:
-        tracked = RegistrationViews(rv.images, previous["projections"] if dof == 9 else
-                                    rv.projections, rv.pixel_spacing)  # fmt: skip
-        result = register_multibody(volume, lab, tracked, init_poses=previous["poses"],
-                                    seed=seed, settings=RegistrationSettings.tracking(),
-                                    models=models, dislocated=dislocated)  # fmt: skip
-        mode = "tracking" if result.converged else "re-registered"
-    if result is None or not result.converged:
-        result = register_multibody(volume, lab, rv, seed=seed, settings=settings,
-                                    progress=progress, models=models,
-                                    dislocated=dislocated)  # fmt: skip
+    result, mode = track_or_register(
+        volume, lab, registration_views(vs), models, dof=dof, seed=seed, previous=previous,
+        dislocated=None if the_plan is None else the_plan["dislocated_bone"], progress=progress,
+    )  # fmt: skip
     record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed,
               "mode": mode, "ct": fingerprint}  # fmt: skip
     if init is not None:
