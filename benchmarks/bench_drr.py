@@ -28,8 +28,9 @@ def _bone(rng, radii, centre, spacing):
 def run() -> dict:
     import numba
 
-    from pelvicnav.drr.projector import downsample_projection, render
+    from pelvicnav.drr.projector import render
     from pelvicnav.geometry import projection as pj
+    from pelvicnav.register.pyramid import downsample_projection
 
     rng = np.random.default_rng(0)
     views = [pj.CArm(), pj.CArm(orbit_deg=30, tilt_deg=-20)]

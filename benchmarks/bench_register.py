@@ -21,32 +21,33 @@ from benchmarks.harness import measure
 def run() -> dict:
     import numba
 
-    from pelvicnav.drr.projector import downsample_projection
     from pelvicnav.drr.splat import splat
     from pelvicnav.metrics.similarity import GradientNCC, GradientOrientation
     from pelvicnav.phantom.population import load_population
     from pelvicnav.register import multibody as mb
+    from pelvicnav.register.pyramid import downsample_projection, splat_renderer
+    from pelvicnav.register.settings import RegistrationSettings
     from pelvicnav.studies.registration import RegistrationStudySettings, simulate_registration_case
 
     atlas = load_population(os.environ.get("PELVICNAV_ATLAS") or None, n_subjects=1)
     case = simulate_registration_case(
         atlas.vertices[0], atlas.faces, seed=0, settings=RegistrationStudySettings()
     )
-    cfg = mb.RegistrationSettings()
+    cfg = RegistrationSettings()
     out: dict = {
         "source": atlas.source,
         "numba_threads": numba.get_num_threads(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
     }
     t0 = time.perf_counter()
-    models = mb.level_models(case["ct"], case["labels"], cfg.factors)
+    models = splat_renderer(case["ct"], case["labels"], cfg.factors)
     out["bone_models_s"] = time.perf_counter() - t0
     B = 100
     views = case["views"]
     for lv, f in enumerate(cfg.factors):
         Ps = np.stack([downsample_projection(P, f) for P in views.projections])
         shape = (views.shape[0] // f, views.shape[1] // f)
-        ms = list(models[lv].values())
+        ms = list(models.models[lv].values())
         for L in (1, 3):
             poses = np.tile(np.eye(4), (B, L, 1, 1))
 
@@ -69,9 +70,9 @@ def run() -> dict:
     for r in range(3):
         # the guidance workflow: the plan names the dislocated bone; bone models built per call
         t0 = time.perf_counter()
-        models = mb.level_models(case["ct"], case["labels"], cfg.factors)
+        models = splat_renderer(case["ct"], case["labels"], cfg.factors)
         res = mb.register_multibody(
-            case["ct"], case["labels"], views, seed=r, settings=cfg, models=models,
+            case["ct"], case["labels"], views, seed=r, settings=cfg, renderer=models,
             dislocated=case["bone"],
         )  # fmt: skip
         times.append([s.seconds for s in res.stages] + [res.seconds, time.perf_counter() - t0])
@@ -87,15 +88,10 @@ def run() -> dict:
         "evaluations": [s.evaluations for s in res.stages],
     }
     # subsequent frame: stage 2 at the fine level only, warm-started from the last result
-    warm = mb.RegistrationSettings(
-        max_generations_stage1=(0, 0),
-        max_generations_stage2=(0, cfg.max_generations_stage2[-1]),
-        stage2_sweeps=1,
-        stage2_restarts=0,  # tracking: no re-search of a bone already found
-    )
+    warm = RegistrationSettings.tracking()
     t = measure(
         lambda: mb.register_multibody(
-            case["ct"], case["labels"], views, init_poses=res.poses, settings=warm, models=models
+            case["ct"], case["labels"], views, init_poses=res.poses, settings=warm, renderer=models
         ),
         repeats=3,
         warmup=0,

@@ -7,10 +7,11 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from helpers.ellipsoids import MU, chords, ellipsoid_volume
-from pelvicnav.drr.projector import downsample_projection, ray_directions, render
+from pelvicnav.drr.projector import ray_directions, render
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
+from pelvicnav.register.pyramid import downsample_projection
 
 
 def test_uniform_ellipsoid_matches_the_closed_form():

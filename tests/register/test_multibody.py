@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
@@ -11,10 +13,14 @@ from pelvicnav.drr.projector import render
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.register.multibody import (
+from pelvicnav.io.views import ViewSet
+from pelvicnav.register.multibody import register_multibody
+from pelvicnav.register.settings import (
+    PyramidSettings,
     RegistrationSettings,
-    RegistrationViews,
-    register_multibody,
+    ResearchSettings,
+    Stage1Settings,
+    Stage2Settings,
 )
 
 BONES = ("sacrum", "left_hip", "right_hip")
@@ -55,7 +61,7 @@ def _views(ct, labels, truth, carms):
     poses = np.stack([truth[b] for b in BONES])[None]
     P = np.stack([c.projection_matrix for c in carms])
     imgs = render(vols, poses, P, (carms[0].rows, carms[0].cols), step_mm=1.0)[0]
-    return RegistrationViews(tuple(imgs), tuple(P), tuple(tuple(c.pixel_spacing) for c in carms))
+    return ViewSet.from_arrays(imgs, P, [c.pixel_spacing for c in carms])
 
 
 def _carm(orbit, tilt, **kw):
@@ -64,15 +70,11 @@ def _carm(orbit, tilt, **kw):
 
 
 FAST = RegistrationSettings(
-    factors=(2, 1),
-    populations=(40, 30),
-    sigmas=(4.0, 1.0),
-    max_generations_stage1=(40, 0),
-    max_generations_stage2=(60, 40),
-    stage2_sweeps=3,
     # GO's fine-level optimum of the smooth ellipsoid "sacrum" lies 1.0-1.2 mm off in depth
     # (measured over seeds and with 4 sweeps or 80 generations); gradient NCC's within 0.15 mm
-    metrics=("gncc", "gncc"),
+    pyramid=PyramidSettings(factors=(2, 1), metrics=("gncc", "gncc")),
+    stage1=Stage1Settings(populations=(40, 30), max_generations=(40, 0)),
+    stage2=Stage2Settings(max_generations=(60, 40), sweeps=3),
 )
 
 
@@ -108,14 +110,14 @@ def test_coarse_rotation_prior_leaves_no_bias_in_a_large_rotation(phantom):
     truth = {"sacrum": np.eye(4), "left_hip": about_c, "right_hip": np.eye(4)}
     views = _views(ct, labels, truth, [_carm(0, 0), _carm(30, -20)])
     # 60x the default weight; the same prior at every level ends 3 mm / 8 deg off
-    heavy = RegistrationSettings(**{**FAST.__dict__, "coarse_rotation_prior": 3e-3})
+    heavy = replace(FAST, research=ResearchSettings(coarse_rotation_prior=3e-3))
     res = register_multibody(ct, labels, views, seed=4, settings=heavy, dislocated="left_hip")
     assert res.restart_disagreement["left_hip"] < 1.0  # the regularised re-search agrees
     E = res.poses["left_hip"] @ tf.invert(truth["left_hip"])
     assert np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(E[:3, :3]))) < 1.0
     assert np.linalg.norm(tf.apply(E, c[None]) - c) < 1.0
     with pytest.raises(ValueError, match="coarse_rotation_prior"):
-        RegistrationSettings(coarse_rotation_prior=-1.0)
+        ResearchSettings(coarse_rotation_prior=-1.0)
 
 
 def test_a_bone_the_images_cannot_pin_down_is_flagged(phantom):
@@ -145,12 +147,13 @@ def test_nine_dof_single_view_fixes_the_projection_of_landmarks(phantom):
     true = _carm(0, 0, source_to_detector=1112.0, principal_point=(70.0, 58.0))
     nominal = _carm(0, 0)
     views = _views(ct, labels, truth, [true])
-    views = RegistrationViews(views.images, (nominal.projection_matrix,), views.pixel_spacing)
+    views = views.with_projections((nominal.projection_matrix,))
     settings = RegistrationSettings(
-        dof=9, factors=(2, 1), populations=(40, 30), max_generations_stage1=(60, 40),
-        max_generations_stage2=(0, 0), stage2=False,
-        metrics=("gncc", "gncc"),  # the textureless ellipsoids give GO too few edges at 1.6 mm
-    )  # fmt: skip
+        # the textureless ellipsoids give GO too few edges at 1.6 mm
+        pyramid=PyramidSettings(factors=(2, 1), metrics=("gncc", "gncc")),
+        stage1=Stage1Settings(dof=9, populations=(40, 30), max_generations=(60, 40)),
+        stage2=Stage2Settings(enabled=False, max_generations=(0, 0)),
+    )
     res = register_multibody(ct, labels, views, seed=2, settings=settings)
     pts = np.concatenate([np.asarray(c)[None] + np.diag(r) * s
                           for c, r in SHAPES.values() for s in (-0.8, 0.8)])  # fmt: skip
@@ -168,24 +171,28 @@ def test_bad_input(phantom):
     img = np.zeros((64, 64))
     P = _carm(0, 0).projection_matrix
     with pytest.raises(ValueError, match="singular"):
-        RegistrationViews((img,), (np.zeros((3, 4)),), ((1.0, 1.0),))
+        ViewSet.from_arrays((img,), (np.zeros((3, 4)),), ((1.0, 1.0),))
     with pytest.raises(ValueError, match="NaN"):
-        RegistrationViews((np.full((64, 64), np.nan),), (P,), ((1.0, 1.0),))
+        ViewSet.from_arrays((np.full((64, 64), np.nan),), (P,), ((1.0, 1.0),))
     with pytest.raises(ValueError, match="same shape"):
-        RegistrationViews((img, np.zeros((32, 64))), (P, P), ((1.0, 1.0),) * 2)
-    views = RegistrationViews((img,), (P,), ((1.0, 1.0),))
+        ViewSet.from_arrays((img, np.zeros((32, 64))), (P, P), ((1.0, 1.0),) * 2)
+    with pytest.raises(ValueError, match="at least 16 x 16"):
+        ViewSet.from_arrays((np.zeros((8, 64)),), (P,), ((1.0, 1.0),))
+    views = ViewSet.from_arrays((img,), (P,), ((1.0, 1.0),))
     with pytest.raises(ValueError, match="no voxel of right_hip"):
         register_multibody(ct, np.where(labels == 3, 0, labels), views, settings=FAST)
     with pytest.raises(ValueError, match="label map shape"):
         register_multibody(ct, labels[:-1], views, settings=FAST)
     with pytest.raises(ValueError, match="exactly one view"):
-        two = RegistrationViews((img, img), (P, P), ((1.0, 1.0),) * 2)
-        register_multibody(ct, labels, two, settings=RegistrationSettings(dof=9))
+        two = ViewSet.from_arrays((img, img), (P, P), ((1.0, 1.0),) * 2)
+        register_multibody(ct, labels, two, settings=RegistrationSettings.for_dof(9))
     with pytest.raises(ValueError, match="dof"):
-        RegistrationSettings(dof=7)
+        Stage1Settings(dof=7)
     with pytest.raises(ValueError, match="unknown dislocated bone"):
         register_multibody(ct, labels, views, settings=FAST, dislocated="femur")
     with pytest.raises(ValueError, match="metrics"):
-        RegistrationSettings(metrics=("go", "mi"))
-    with pytest.raises(ValueError, match="stage2_restarts"):
-        RegistrationSettings(stage2_restarts=-1)
+        PyramidSettings(metrics=("go", "mi"))
+    with pytest.raises(ValueError, match="restarts"):
+        ResearchSettings(restarts=-1)
+    with pytest.raises(ValueError, match="one value per pyramid level"):
+        RegistrationSettings(stage1=Stage1Settings(max_generations=(25,)))

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 
-__all__ = ["downsample_image", "downsample_projection", "ray_directions", "render"]
+__all__ = ["ray_directions", "render"]
 
 
 def ray_directions(P: ArrayLike, rows: int, cols: int) -> tuple[NDArray, NDArray]:
@@ -34,34 +34,6 @@ def ray_directions(P: ArrayLike, rows: int, cols: int) -> tuple[NDArray, NDArray
     )
     source, d = pj.backproject(P, np.stack([u, v], axis=-1))
     return source, d
-
-
-def downsample_projection(P: ArrayLike, factor: float) -> NDArray[np.float64]:
-    """Projection matrix of the same view on a detector binned by ``factor``.
-
-    Pixel centres stay at integers: a binned pixel ``u'`` covers original pixels
-    ``factor * u' ... factor * u' + factor - 1``, so ``u' = (u - (factor - 1) / 2) / factor``.
-    """
-    if factor <= 0:
-        raise ValueError(f"factor must be positive, got {factor}")
-    S = np.array(
-        [
-            [1 / factor, 0, -(factor - 1) / (2 * factor)],
-            [0, 1 / factor, -(factor - 1) / (2 * factor)],
-            [0, 0, 1],
-        ]
-    )
-    return S @ pj.normalize_projection(P)
-
-
-def downsample_image(image: ArrayLike, factor: int) -> NDArray[np.float64]:
-    """Block-average an image by an integer factor (trailing rows/columns that do not fill a block
-    are dropped), matching :func:`downsample_projection`."""
-    img = np.asarray(image, dtype=np.float64)
-    if factor == 1:
-        return img
-    h, w = (img.shape[0] // factor) * factor, (img.shape[1] // factor) * factor
-    return img[:h, :w].reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
 
 
 def render(

@@ -9,6 +9,9 @@ Format (see docs/conventions.md)::
 
 Images are ``(rows, cols)`` float32 arrays of line integrals stored as ``.npy`` beside the JSON.
 Writing is atomic (temporary names, then rename); reading validates everything and names the file.
+
+:class:`View` is one radiograph; :class:`ViewSet` the views one registration uses together (the
+type :mod:`pelvicnav.register` takes).
 """
 
 from __future__ import annotations
@@ -19,11 +22,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
+from pelvicnav.geometry.projection import normalize_projection
 from pelvicnav.io.jsonfile import read_json
 
-__all__ = ["View", "read_views", "write_views"]
+__all__ = ["View", "ViewSet", "read_views", "write_views"]
+
+MIN_SIZE = 16  # pixels: the coarsest pyramid level (4x binning) still has a 4 x 4 image
 
 
 @dataclass(frozen=True, eq=False)
@@ -33,10 +39,11 @@ class View:
     Attributes
     ----------
     name : str
-    image : (rows, cols) float32
-        Line integrals (log-transformed intensities).
+    image : (rows, cols) float32 or float64
+        Line integrals (log-transformed intensities); integer images become float32.
     projection_matrix : (3, 4) float64
-        World (LPS mm) to pixels, see :mod:`pelvicnav.geometry.projection`.
+        World (LPS mm) to pixels, see :mod:`pelvicnav.geometry.projection`; stored normalised
+        (``det > 0``, third row of unit length: ``w`` is depth in mm).
     pixel_spacing : (2,) float, mm
     meta : dict
         Extra JSON-serialisable fields (dose, angles...).
@@ -49,7 +56,9 @@ class View:
     meta: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        img = np.asarray(self.image, dtype=np.float32)
+        img = np.asarray(self.image)
+        if not np.issubdtype(img.dtype, np.floating):
+            img = img.astype(np.float32)
         if img.ndim != 2:
             raise ValueError(f"view {self.name!r}: image must be 2D, got shape {img.shape}")
         if not np.all(np.isfinite(img)):
@@ -57,9 +66,10 @@ class View:
         P = np.asarray(self.projection_matrix, dtype=np.float64)
         if P.shape != (3, 4) or not np.all(np.isfinite(P)):
             raise ValueError(f"view {self.name!r}: projection matrix must be a finite 3 x 4 array")
-        sv = np.linalg.svd(P[:, :3], compute_uv=False)
-        if sv[-1] <= 1e-12 * max(sv[0], 1e-300):
-            raise ValueError(f"view {self.name!r}: projection matrix is singular (no source)")
+        try:
+            P = normalize_projection(P)
+        except ValueError as err:
+            raise ValueError(f"view {self.name!r}: {err}") from None
         ps = tuple(float(x) for x in np.asarray(self.pixel_spacing).reshape(-1))
         if len(ps) != 2 or min(ps) <= 0:
             raise ValueError(f"view {self.name!r}: pixel spacing must be 2 positive numbers")
@@ -72,6 +82,77 @@ class View:
         """X-ray source position (mm): the projection centre ``-M^-1 p4``."""
         P = self.projection_matrix
         return -np.linalg.solve(P[:, :3], P[:, 3])
+
+
+@dataclass(frozen=True, eq=False)
+class ViewSet:
+    """The radiographs one registration uses together: at least one view, all the same shape,
+    each at least 16 x 16 pixels.
+
+    Attributes
+    ----------
+    views : tuple of View
+    """
+
+    views: tuple[View, ...]
+
+    def __post_init__(self) -> None:
+        views = tuple(self.views)
+        if not views:
+            raise ValueError("a view set needs at least one view")
+        shapes = [v.image.shape for v in views]
+        if len(set(shapes)) != 1:
+            raise ValueError(f"all views must have the same shape, got {shapes}")
+        if min(shapes[0]) < MIN_SIZE:
+            raise ValueError(
+                f"view {views[0].name!r}: image must be at least {MIN_SIZE} x {MIN_SIZE} pixels, "
+                f"got {shapes[0]}"
+            )
+        object.__setattr__(self, "views", views)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        images: list[ArrayLike] | tuple,
+        projections: list[ArrayLike] | tuple,
+        pixel_spacing: list | tuple,
+    ) -> ViewSet:
+        """Views named ``view0, view1...`` from images, matrices and pixel spacings."""
+        n = (len(images), len(projections), len(pixel_spacing))
+        if len(set(n)) != 1:
+            raise ValueError(
+                f"need one projection matrix and pixel spacing per image, got {n[0]} images, "
+                f"{n[1]} matrices and {n[2]} spacings"
+            )
+        items = zip(images, projections, pixel_spacing, strict=True)
+        return cls(tuple(View(f"view{k}", np.asarray(img), P, ps)
+                         for k, (img, P, ps) in enumerate(items)))  # fmt: skip
+
+    def with_projections(self, projections: list[ArrayLike] | tuple) -> ViewSet:
+        """The same images with other projection matrices (e.g. a 9-DoF frame's estimate)."""
+        if len(projections) != len(self.views):
+            raise ValueError(f"need {len(self.views)} projection matrices, got {len(projections)}")
+        return ViewSet(tuple(View(v.name, v.image, P, v.pixel_spacing, v.meta)
+                             for v, P in zip(self.views, projections, strict=True)))  # fmt: skip
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    @property
+    def images(self) -> tuple[NDArray, ...]:
+        return tuple(v.image for v in self.views)
+
+    @property
+    def projections(self) -> tuple[NDArray[np.float64], ...]:
+        return tuple(v.projection_matrix for v in self.views)
+
+    @property
+    def pixel_spacing(self) -> tuple[tuple[float, float], ...]:
+        return tuple(v.pixel_spacing for v in self.views)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.views[0].image.shape  # type: ignore[return-value]
 
 
 def write_views(
@@ -95,7 +176,7 @@ def write_views(
         fname = f"{v.name}.npy"
         tmp = d / (fname + ".part")
         with open(tmp, "wb") as fh:
-            np.save(fh, v.image)
+            np.save(fh, v.image.astype(np.float32, copy=False))
         os.replace(tmp, d / fname)
         entries.append(
             {

@@ -1,1 +1,5 @@
-"""3D-2D registration: CMA-ES driver, stage 1 (one bone vs the system geometry), stage 2."""
+"""Multi-body 3D-2D registration: settings, pyramid, stage 1, stage 2, re-search, orchestrator.
+
+The entry points are :func:`~pelvicnav.register.multibody.register_multibody` (a CT and label
+map) and :func:`~pelvicnav.register.multibody.register` (any renderer).
+"""

@@ -95,7 +95,7 @@ def minimize_cmaes(
         raise ValueError(f"need sigma > 0 and population >= 2, got {sigma}, {population}")
     opts = {
         "popsize": int(population),
-        "seed": int(seed) + 1,  # pycma treats seed 0 as "random"
+        "seed": int(seed) % (2**32 - 1) + 1,  # pycma treats seed 0 as "random"
         "maxiter": int(max_generations),
         "tolfun": tol_fun,
         "tolx": tol_x,

@@ -22,6 +22,7 @@ import numpy as np
 from pelvicnav import BONES
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
+from pelvicnav.io.views import ViewSet
 from pelvicnav.studies.runner import Study, flatten, run_study
 
 __all__ = ["FovSettings", "fov_study", "run_fov_case", "run_fov_study", "summarise_fov"]
@@ -98,11 +99,8 @@ def _shifted(P, r0: int, c0: int):
 
 def run_fov_case(case: dict) -> list[dict]:
     """Simulate, crop, register with 9 DoF; one row per scored bone."""
-    from pelvicnav.register.multibody import (
-        RegistrationSettings,
-        RegistrationViews,
-        register_multibody,
-    )
+    from pelvicnav.register.multibody import register_multibody
+    from pelvicnav.register.settings import RegistrationSettings
     from pelvicnav.studies.registration import (
         RegistrationStudySettings,
         simulate_registration_case,
@@ -116,9 +114,9 @@ def run_fov_case(case: dict) -> list[dict]:
                                      np.random.default_rng(case["crop_seed"]))  # fmt: skip
     image = sim["views"].images[0][r0 : r0 + side, c0 : c0 + side]
     nominal = _shifted(sim["views"].projections[0], r0, c0)
-    views = RegistrationViews((image,), (nominal,), sim["views"].pixel_spacing)
+    views = ViewSet.from_arrays((image,), (nominal,), sim["views"].pixel_spacing)
     res = register_multibody(sim["ct"], sim["labels"], views, seed=case["seed"],
-                             settings=RegistrationSettings(dof=9),
+                             settings=RegistrationSettings.for_dof(9),
                              dislocated=sim["bone"])  # fmt: skip
     true_P = _shifted(sim["true_projections"][0], r0, c0)
     dr, dc = sim["views"].pixel_spacing[0]

@@ -79,10 +79,10 @@ def _random_rigid(rng, max_mm, max_deg, centre) -> NDArray[np.float64]:
 def simulate_registration_case(vertices, faces, *, seed: int, settings: RegistrationStudySettings):
     """Preoperative CT + labels, registration views (nominal geometry) and the true poses."""
     from pelvicnav.drr.volume import Volume
+    from pelvicnav.io.views import ViewSet
     from pelvicnav.phantom.ctsynth import CTOptions, synthesize_ct
     from pelvicnav.phantom.dislocate import apply_dislocation, draw_dislocation
     from pelvicnav.phantom.xray import simulate_radiograph, standard_view
-    from pelvicnav.register.multibody import RegistrationViews
 
     rng = np.random.default_rng(seed)
     V = np.asarray(vertices, dtype=np.float64)
@@ -118,7 +118,7 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
     return {
         "ct": ct.hu,
         "labels": ct.labels,
-        "views": RegistrationViews(tuple(images), tuple(nominal), tuple(spacing)),
+        "views": ViewSet.from_arrays(images, nominal, spacing),
         "true_projections": true_P,
         "truth": truth,
         "bone": bone,
@@ -163,14 +163,14 @@ def registration_study(atlas: Atlas, settings: RegistrationStudySettings | None 
                        registration=None) -> Study:  # fmt: skip
     """The study as the runner takes it: one self-contained case per simulated patient (the
     subject's meshes travel with the case, so workers need no atlas)."""
-    from pelvicnav.register.multibody import RegistrationSettings
+    from pelvicnav.register.settings import RegistrationSettings
 
     cfg = settings or RegistrationStudySettings()
     if cfg.segmentation not in ("truth", "asm"):
         raise ValueError(f"segmentation must be 'truth' or 'asm', got {cfg.segmentation!r}")
     if cfg.dof == 9 and len(cfg.views) != 1:
         cfg = replace(cfg, views=cfg.views[:1])
-    reg = registration or RegistrationSettings(dof=cfg.dof)
+    reg = registration or RegistrationSettings.for_dof(cfg.dof)
     cases = []
     for i in range(cfg.n_cases):
         s = i % atlas.n_subjects

@@ -85,21 +85,23 @@ def run_runtime_case(case: dict) -> dict:
 
 def _registration_times(case: dict, sim: dict) -> dict:
     from pelvicnav.guide.overlay import bone_edges, overlay_rgb
-    from pelvicnav.register.multibody import RegistrationSettings, level_models, register_multibody
+    from pelvicnav.register.multibody import register_multibody
+    from pelvicnav.register.pyramid import splat_renderer
+    from pelvicnav.register.settings import RegistrationSettings
 
     out = {}
     full = RegistrationSettings()
     t = time.perf_counter()
-    models = level_models(sim["ct"], sim["labels"], full.factors)
+    models = splat_renderer(sim["ct"], sim["labels"], full.factors)
     out["bone_models_s"] = time.perf_counter() - t
     res = register_multibody(sim["ct"], sim["labels"], sim["views"], seed=case["seed"],
-                             settings=full, models=models, dislocated=sim["bone"])  # fmt: skip
+                             settings=full, renderer=models, dislocated=sim["bone"])  # fmt: skip
     out["stage1_s"] = res.stages[0].seconds
     out["stage2_s"] = res.stages[1].seconds if len(res.stages) > 1 else 0.0
     t = time.perf_counter()
     for k, image in enumerate(sim["views"].images):
         P = res.projections[k]
-        edges = {b: bone_edges(models[-1][b], res.poses[b], P, image.shape) for b in BONES}
+        edges = {b: bone_edges(models.models[-1][b], res.poses[b], P, image.shape) for b in BONES}
         overlay_rgb(image, edges, target=edges[sim["bone"]])
     out["augmentation_s"] = time.perf_counter() - t
     rng = np.random.default_rng(case["seed"])
@@ -114,7 +116,7 @@ def _registration_times(case: dict, sim: dict) -> dict:
     warm = RegistrationSettings.tracking()
     t = time.perf_counter()
     again = register_multibody(sim["ct"], sim["labels"], sim["views"], init_poses=nudge,
-                               seed=case["seed"] + 1, settings=warm, models=models,
+                               seed=case["seed"] + 1, settings=warm, renderer=models,
                                dislocated=sim["bone"])  # fmt: skip
     out["subsequent_frame_s"] = time.perf_counter() - t
     for name, r in (("first", res), ("subsequent", again)):

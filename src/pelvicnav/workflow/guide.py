@@ -163,17 +163,18 @@ def _previous(session: Path, frames: list, n_views: int, dof: int) -> dict | Non
 
 def _register(hu, A, labels, vs, plan, previous, seed, dof, progress):
     from pelvicnav.drr.volume import Volume
-    from pelvicnav.register.multibody import RegistrationSettings, level_models
+    from pelvicnav.register.pyramid import splat_renderer
+    from pelvicnav.register.settings import RegistrationSettings
     from pelvicnav.workflow.register import registration_views, track_or_register
 
     volume = Volume(np.asarray(hu, dtype=np.float32), A)
-    models = level_models(volume, labels, RegistrationSettings(dof=dof).factors)
+    models = splat_renderer(volume, labels, RegistrationSettings.for_dof(dof).factors)
     result, mode = track_or_register(
         volume, labels, registration_views(vs), models, dof=dof, seed=seed,
         dislocated=plan.dislocated[0] if len(plan.dislocated) == 1 else None,
         previous=None if previous is None else {"poses": previous}, progress=progress,
     )  # fmt: skip
-    return result, mode, models[-1]
+    return result, mode, models.models[-1]
 
 
 def _residuals(result, plan, labels, A) -> dict:

@@ -9,7 +9,7 @@ refused.
 
 Tracking: with ``init`` (a previous ``result.json`` of the same CT, bones and number of views)
 the registration starts from that frame's poses and geometry, skips stage 1 and refines locally
-(:meth:`~pelvicnav.register.multibody.RegistrationSettings.tracking`); if that does not converge
+(:meth:`~pelvicnav.register.settings.RegistrationSettings.tracking`); if that does not converge
 it falls back to a full registration. ``result.json`` says which (``mode``: ``first``,
 ``tracking`` or ``re-registered``) and carries the CT's fingerprint, which ``init`` is checked
 against.
@@ -37,11 +37,10 @@ __all__ = [
 
 
 def registration_views(vs):
-    """The register stage's view type from read views (images, matrices, pixel spacings)."""
-    from pelvicnav.register.multibody import RegistrationViews
+    """The views of one registration, checked together (same shape, big enough)."""
+    from pelvicnav.io.views import ViewSet
 
-    return RegistrationViews(tuple(v.image for v in vs), tuple(v.projection_matrix for v in vs),
-                             tuple(tuple(v.pixel_spacing) for v in vs))  # fmt: skip
+    return ViewSet(tuple(vs))
 
 
 def track_or_register(volume, labels, views, models, *, dof, seed, dislocated, previous=None,
@@ -50,27 +49,24 @@ def track_or_register(volume, labels, views, models, *, dof, seed, dislocated, p
 
     ``previous``: ``{"poses": bone -> (4, 4), "projections": optional}`` (a 9-DoF frame's
     estimated geometry stands for the views'). Tracking uses
-    :meth:`~pelvicnav.register.multibody.RegistrationSettings.tracking`; when it does not
+    :meth:`~pelvicnav.register.settings.RegistrationSettings.tracking`; when it does not
     converge, or with no previous frame, a full registration follows. ``mode`` is ``first``,
     ``tracking`` or ``re-registered``.
     """
-    from pelvicnav.register.multibody import (
-        RegistrationSettings,
-        RegistrationViews,
-        register_multibody,
-    )
+    from pelvicnav.register.multibody import register_multibody
+    from pelvicnav.register.settings import RegistrationSettings
 
     if previous is not None:
         Ps = previous.get("projections") if dof == 9 else None
-        tracked = views if Ps is None else RegistrationViews(views.images, Ps, views.pixel_spacing)
+        tracked = views if Ps is None else views.with_projections(Ps)
         result = register_multibody(volume, labels, tracked, init_poses=previous["poses"],
                                     seed=seed, settings=RegistrationSettings.tracking(),
-                                    models=models, dislocated=dislocated)  # fmt: skip
+                                    renderer=models, dislocated=dislocated)  # fmt: skip
         if result.converged:
             return result, "tracking"
     result = register_multibody(volume, labels, views, seed=seed,
-                                settings=RegistrationSettings(dof=dof), progress=progress,
-                                models=models, dislocated=dislocated)  # fmt: skip
+                                settings=RegistrationSettings.for_dof(dof), progress=progress,
+                                renderer=models, dislocated=dislocated)  # fmt: skip
     return result, ("first" if previous is None else "re-registered")
 
 
@@ -181,7 +177,8 @@ def register_files(
     from pelvicnav.io.atomic import write_text
     from pelvicnav.io.itk_transform import write_pose_transforms
     from pelvicnav.io.views import read_views
-    from pelvicnav.register.multibody import RegistrationSettings, level_models
+    from pelvicnav.register.pyramid import splat_renderer
+    from pelvicnav.register.settings import RegistrationSettings
     from pelvicnav.workflow.inputs import read_ct_and_bones
 
     if dof not in (6, 9):
@@ -191,10 +188,10 @@ def register_files(
     data, affine, _, lab = read_ct_and_bones(ct, labels, label_scheme, series)
     fingerprint = ct_fingerprint(data, affine)
     previous = None if init is None else read_init(init, n_views=len(vs), ct=fingerprint)
-    settings = RegistrationSettings(dof=dof)
+    settings = RegistrationSettings.for_dof(dof)
     volume = Volume(np.asarray(data, dtype=np.float32), affine)
     try:  # one set of bone models for registration and overlays
-        models = level_models(volume, lab, settings.factors)
+        models = splat_renderer(volume, lab, settings.factors)
     except ValueError as err:
         raise ValueError(f"{labels}: {err}") from None
     result, mode = track_or_register(
@@ -209,7 +206,7 @@ def register_files(
     if the_plan is not None:
         record["residual"] = _residual(result, the_plan, volume, lab)
     if overlay is not None:
-        write_view_overlays(overlay, models[-1], vs, result, the_plan, dicom=overlay_dicom)
+        write_view_overlays(overlay, models.models[-1], vs, result, the_plan, dicom=overlay_dicom)
     out = Path(out)
     residual = record.get("residual", {}).get("world_transform")
     write_pose_transforms(out.parent / "transforms", result.poses, residual=residual)

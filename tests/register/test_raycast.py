@@ -1,4 +1,5 @@
-"""Rigid 3D-2D registration: render from a known pose, perturb, register, check the error."""
+"""The ray-cast reference renderer through the same driver: render from a known pose, perturb,
+register one rigid body, check the error."""
 
 from __future__ import annotations
 
@@ -6,11 +7,20 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from pelvicnav.drr.projector import downsample_image, render
+from pelvicnav.drr.projector import render
+from pelvicnav.drr.renderer import RayCastRenderer, Renderer
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.register.rigid import PyramidSettings, register_rigid
+from pelvicnav.io.views import ViewSet
+from pelvicnav.register.multibody import register
+from pelvicnav.register.pyramid import downsample_image
+from pelvicnav.register.settings import (
+    PyramidSettings,
+    RegistrationSettings,
+    Stage1Settings,
+    Stage2Settings,
+)
 
 
 @pytest.fixture(scope="module")
@@ -49,32 +59,35 @@ def test_recovers_a_known_pose_from_three_views(bone):
     Ps = [v.projection_matrix for v in views]
     truth = tf.from_params([4.0, -3.0, 5.0], np.deg2rad([3.0, -2.0, 4.0]))
     images = render([bone], truth[None, None], np.stack(Ps), (64, 64))[0]
-    settings = PyramidSettings(
-        factors=(2, 1), populations=(24, 24), sigmas=(4.0, 1.0), max_generations=(40, 40)
+    settings = RegistrationSettings(
+        pyramid=PyramidSettings(factors=(2, 1), metrics=("go", "go")),  # the paper's GO
+        stage1=Stage1Settings(populations=(24, 24), max_generations=(40, 40)),
+        stage2=Stage2Settings(enabled=False, max_generations=(0, 0)),
     )
-    res = register_rigid(
-        [bone], list(images), Ps, init_pose=np.eye(4), center=(0.0, 0.0, 0.0), seed=3,
-        settings=settings,
-    )  # fmt: skip
-    err = tf.invert(truth) @ res.pose
+    renderer = RayCastRenderer({"body": bone}, levels=2)
+    assert isinstance(renderer, Renderer)
+    views = ViewSet.from_arrays(list(images), Ps, [v.pixel_spacing for v in views])
+    res = register(views, renderer, seed=3, settings=settings)
+    err = tf.invert(truth) @ res.poses["body"]
     assert np.linalg.norm(err[:3, 3]) < 0.5  # mm
     assert np.degrees(np.linalg.norm(tf.rotvec_from_matrix(err[:3, :3]))) < 0.5
     assert res.similarity > 2.4  # three views, each near its maximum
-    assert len(res.levels) == 2
+    assert res.converged, res.warnings
+    assert len(res.stages[0].levels) == 2
 
 
 def test_bad_input(bone):
     P = pj.CArm(rows=16, cols=16).projection_matrix
     img = np.zeros((16, 16))
-    with pytest.raises(ValueError, match="one projection matrix per radiograph"):
-        register_rigid([bone], [img, img], [P], init_pose=np.eye(4), center=(0, 0, 0), seed=0)
+    with pytest.raises(ValueError, match="one projection matrix and pixel spacing per image"):
+        ViewSet.from_arrays([img, img], [P], [(1.0, 1.0)])
     bad = img.copy()
     bad[0, 0] = np.nan
-    with pytest.raises(ValueError, match="radiograph 0 must be a finite 2D image"):
-        register_rigid([bone], [bad], [P], init_pose=np.eye(4), center=(0, 0, 0), seed=0)
+    with pytest.raises(ValueError, match="NaN"):
+        ViewSet.from_arrays([bad], [P], [(1.0, 1.0)])
     with pytest.raises(ValueError, match="singular"):
-        register_rigid(
-            [bone], [img], [np.zeros((3, 4))], init_pose=np.eye(4), center=(0, 0, 0), seed=0
-        )
+        ViewSet.from_arrays([img], [np.zeros((3, 4))], [(1.0, 1.0)])
     with pytest.raises(ValueError, match="one value per level"):
-        PyramidSettings(factors=(4, 2), populations=(100,))
+        PyramidSettings(factors=(4, 2), sigmas=(4.0,))
+    with pytest.raises(ValueError, match="renderer has 1 levels"):
+        register(ViewSet.from_arrays([img], [P], [(1.0, 1.0)]), RayCastRenderer({"body": bone}))

@@ -1,0 +1,139 @@
+"""Pyramid levels: the radiographs binned and blurred like the DRRs, their geometry and similarity.
+
+A :class:`Level` is one resolution of the whole view set: the binned projection matrices, one
+similarity per view built from the blurred radiograph, and the image shape. Stages score
+candidates with :meth:`Level.score`. Binning keeps pixel centres at integers
+(:func:`downsample_projection`, :func:`downsample_image`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import gaussian_filter
+
+from pelvicnav.drr.attenuation import bone_models
+from pelvicnav.drr.renderer import Renderer, SplatRenderer
+from pelvicnav.drr.volume import Volume
+from pelvicnav.geometry import projection as pj
+from pelvicnav.io.views import ViewSet
+from pelvicnav.metrics.similarity import GradientNCC, GradientOrientation
+from pelvicnav.register.settings import PyramidSettings
+
+__all__ = [
+    "SAMPLE_MM_PER_FACTOR",
+    "Level",
+    "build_levels",
+    "downsample_image",
+    "downsample_projection",
+    "splat_renderer",
+]
+
+# Bone model sample spacing per unit of pyramid binning (mm): 3 mm at 4x, 1.5 mm at 2x. The
+# splatting cost grows as 1 / spacing; finer samples did not improve accuracy measurably.
+SAMPLE_MM_PER_FACTOR = 0.75
+
+_METRICS = {"go": GradientOrientation, "gncc": GradientNCC}
+
+
+def downsample_projection(P: ArrayLike, factor: float) -> NDArray[np.float64]:
+    """Projection matrix of the same view on a detector binned by ``factor``.
+
+    Pixel centres stay at integers: a binned pixel ``u'`` covers original pixels
+    ``factor * u' ... factor * u' + factor - 1``, so ``u' = (u - (factor - 1) / 2) / factor``.
+    """
+    if factor <= 0:
+        raise ValueError(f"factor must be positive, got {factor}")
+    S = np.array(
+        [
+            [1 / factor, 0, -(factor - 1) / (2 * factor)],
+            [0, 1 / factor, -(factor - 1) / (2 * factor)],
+            [0, 0, 1],
+        ]
+    )
+    return S @ pj.normalize_projection(P)
+
+
+def downsample_image(image: ArrayLike, factor: int) -> NDArray[np.float64]:
+    """Block-average an image by an integer factor (trailing rows/columns that do not fill a block
+    are dropped), matching :func:`downsample_projection`."""
+    img = np.asarray(image, dtype=np.float64)
+    if factor == 1:
+        return img
+    h, w = (img.shape[0] // factor) * factor, (img.shape[1] // factor) * factor
+    return img[:h, :w].reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
+
+
+def splat_renderer(ct_hu: Volume, labels: ArrayLike, factors: Sequence[int]) -> SplatRenderer:
+    """Bone point models for each pyramid level (sample spacing ``SAMPLE_MM_PER_FACTOR`` x
+    factor). Build once per CT and pass to every frame's registration."""
+    lab = np.asarray(labels)
+    return SplatRenderer(
+        tuple(bone_models(ct_hu, lab, sample_mm=SAMPLE_MM_PER_FACTOR * f) for f in factors)
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Level:
+    """One pyramid level of a view set.
+
+    Attributes
+    ----------
+    index : int
+        Position in the pyramid (0 = coarsest); the renderer's level.
+    factor : int
+        Detector binning.
+    projections : (K, 3, 4) float64
+        Binned projection matrices.
+    similarities : K callables
+        ``drrs (B, rows, cols) -> (B,)`` against each view's blurred radiograph.
+    shape : (rows, cols)
+    """
+
+    index: int
+    factor: int
+    projections: NDArray[np.float64]
+    similarities: tuple
+    shape: tuple[int, int]
+
+    def score(self, drrs: NDArray) -> NDArray[np.float64]:
+        """Similarity summed over the views: ``drrs`` (B, K, rows, cols) -> (B,)."""
+        return sum(s(drrs[:, k]) for k, s in enumerate(self.similarities))
+
+    def with_geometry(self, projections: Sequence[ArrayLike]) -> Level:
+        """This level with the full-resolution ``projections`` (binned here) instead."""
+        Ps = np.stack([downsample_projection(P, self.factor) for P in projections])
+        return Level(self.index, self.factor, Ps, self.similarities, self.shape)
+
+
+def blurred(image: NDArray, factor: int, resolution_mm: float, depth_mm: float, P) -> NDArray:
+    """A radiograph at a pyramid level, blurred like the DRR (a tent of one sample spacing at the
+    bones' depth; none for an exact renderer, ``resolution_mm`` 0)."""
+    img = downsample_image(image, factor)
+    if resolution_mm <= 0:
+        return img
+    K = pj.decompose_projection(P).intrinsics
+    px = resolution_mm * K[0, 0] / depth_mm  # sample spacing in pixels at the bones' depth
+    sigma = 0.4 * max(px, 1.0)  # a tent of half-width r has sd r / sqrt(6)
+    return gaussian_filter(img, sigma, mode="nearest")
+
+
+def build_levels(views: ViewSet, renderer: Renderer, pyramid: PyramidSettings) -> list[Level]:
+    """Every level of the pyramid for ``views`` (coarse to fine)."""
+    if renderer.n_levels != pyramid.n_levels:
+        raise ValueError(
+            f"the renderer has {renderer.n_levels} levels, the pyramid {pyramid.n_levels}"
+        )
+    levels = []
+    for lv, (f, metric) in enumerate(zip(pyramid.factors, pyramid.metrics, strict=True)):
+        Ps = np.stack([downsample_projection(P, f) for P in views.projections])
+        pts = renderer.points(renderer.bones[0], lv)[::50]
+        res = renderer.resolution_mm(lv)
+        imgs = [blurred(img, f, res, float(np.median(pj.depth(P, pts))), P)
+                for img, P in zip(views.images, Ps, strict=True)]  # fmt: skip
+        sims = tuple(_METRICS[metric](i) for i in imgs)
+        levels.append(Level(lv, f, Ps, sims, imgs[0].shape))
+    return levels

@@ -1,0 +1,111 @@
+"""What a registration returns: per-stage CMA-ES runs and the registered poses with diagnostics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pelvicnav.register.cmaes import CMAESResult
+
+__all__ = ["COLLAPSED", "PLATEAU", "MultiBodyResult", "StageResult"]
+
+PLATEAU = 1e-3
+COLLAPSED = 0.5  # mm or degrees
+
+
+def _plateaued(history: NDArray) -> bool:
+    h = np.minimum.accumulate(np.asarray(history, dtype=np.float64))
+    return len(h) > 10 and h[-11] - h[-1] < PLATEAU
+
+
+@dataclass(frozen=True)
+class StageResult:
+    """One stage: per-level CMA-ES results, time and evaluations."""
+
+    name: str
+    levels: list[CMAESResult]
+    seconds: float
+    n_final: int = 1
+    restarts: list[CMAESResult] = field(default_factory=list)  # re-searches (not the estimate)
+
+    @property
+    def converged(self) -> bool:
+        """The runs that produced the final estimate (the last level; in stage 2 the last sweep,
+        one run per bone) each stopped on a tolerance, collapsed (largest search standard
+        deviation below ``COLLAPSED`` mm or degrees) or plateaued (best similarity improved by
+        less than ``PLATEAU`` over its last ten generations)."""
+        final = self.levels[-self.n_final :] if self.levels else []
+        return all(r.converged or r.final_std < COLLAPSED or _plateaued(r.history) for r in final)
+
+    @property
+    def evaluations(self) -> int:
+        return sum(r.evaluations for r in (*self.levels, *self.restarts))
+
+
+@dataclass(frozen=True)
+class MultiBodyResult:
+    """Registered poses and diagnostics.
+
+    Attributes
+    ----------
+    poses : dict bone -> (4, 4) float64
+        ``world_from_ct`` of each bone.
+    projections : tuple of (3, 4)
+        The views' projection matrices (refined by stage 1 with ``dof=9``).
+    similarity : float
+        GO (summed over views) at the finest level, all bones rendered.
+    converged : bool
+    stages : list of StageResult
+    seconds : float
+    stage1_bone : str
+    warnings : tuple of str
+    restart_disagreement : dict bone -> mm
+        Distance between the stage-2 answer and the independent re-search (``stage2_restarts``):
+        at the bone's centroid, or with one view the median distance of its projected samples
+        at the detector.
+    """
+
+    poses: dict[str, NDArray[np.float64]]
+    projections: tuple[NDArray[np.float64], ...]
+    similarity: float
+    converged: bool
+    stages: list[StageResult] = field(default_factory=list)
+    seconds: float = 0.0
+    stage1_bone: str = ""
+    warnings: tuple[str, ...] = ()
+    restart_disagreement: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """The ``result.json`` record of ARCHITECTURE.md."""
+        return {
+            "poses": {b: np.asarray(T).tolist() for b, T in self.poses.items()},
+            "projection_matrices": [np.asarray(P).tolist() for P in self.projections],
+            "similarity": self.similarity,
+            "converged": self.converged,
+            "warnings": list(self.warnings),
+            "stage1_bone": self.stage1_bone,
+            "restart_disagreement_mm": dict(self.restart_disagreement),
+            "seconds": self.seconds,
+            "stages": [
+                {
+                    "name": s.name,
+                    "seconds": s.seconds,
+                    "evaluations": s.evaluations,
+                    "converged": s.converged,
+                    "levels": [
+                        {
+                            "similarity": -r.f,
+                            "generations": r.generations,
+                            "evaluations": r.evaluations,
+                            "converged": r.converged,
+                            "final_std": r.final_std,
+                            "stop": {k: str(v) for k, v in r.stop.items()},
+                        }
+                        for r in s.levels
+                    ],
+                }
+                for s in self.stages
+            ],
+        }

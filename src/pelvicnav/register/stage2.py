@@ -1,0 +1,207 @@
+"""Stage 2 (Han et al. 2020, equation 12): the 6-DoF pose of every bone from the stage-1 pose.
+
+Parameters are ``6 x L``: each bone's ``[t (mm), r (deg)]`` about its own centroid on top of its
+stage-1 pose. Two ways to search them, coarse to fine over the pyramid:
+
+* :func:`sweeps` (default) — block coordinates: each bone's 6 DoF in turn over the fixed DRR of
+  the others (DRRs add, so a candidate renders one bone), the dislocated bone first;
+* :func:`joint` — one CMA-ES over all ``6 x L`` parameters (the paper).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pelvicnav.drr.renderer import Renderer
+from pelvicnav.geometry import projection as pj
+from pelvicnav.geometry import transforms as tf
+from pelvicnav.register.cmaes import CMAESResult, minimize_cmaes
+from pelvicnav.register.pyramid import Level
+from pelvicnav.register.seeds import JOINT, SWEEP, run_seed
+from pelvicnav.register.settings import RegistrationSettings
+
+__all__ = ["Blocks", "Stage2Problem", "joint", "sweeps"]
+
+
+@dataclass(frozen=True, eq=False)
+class Blocks:
+    """Every bone's 6 parameters about its centre (world mm) on top of its base pose.
+
+    Attributes
+    ----------
+    bones : tuple of str
+    base : (L, 4, 4) ``world_from_ct`` at zero parameters (the stage-1 poses)
+    centres : (L, 3) world mm (each bone's centroid at its base pose)
+    """
+
+    bones: tuple[str, ...]
+    base: NDArray[np.float64]
+    centres: NDArray[np.float64]
+
+    @classmethod
+    def at(cls, poses: dict[str, NDArray], renderer: Renderer) -> Blocks:
+        """Blocks about the bones' ``poses`` (renderer order)."""
+        bones = renderer.bones
+        base = np.stack([poses[b] for b in bones])
+        centres = np.stack([tf.apply(base[i], renderer.centroid(b)[None])[0]
+                            for i, b in enumerate(bones)])  # fmt: skip
+        return cls(bones, base, centres)
+
+    def bone_poses(self, i: int, X: NDArray) -> NDArray[np.float64]:
+        """Bone ``i`` at its parameters ``X`` (N, 6) -> (N, 4, 4)."""
+        return pj.six_dof_pose(X, center=self.centres[i]) @ self.base[i]
+
+    def poses(self, Y: NDArray) -> NDArray[np.float64]:
+        """Every bone at ``Y`` (N, 6 L) -> (N, L, 4, 4)."""
+        return np.stack([self.bone_poses(i, Y[:, 6 * i : 6 * i + 6])
+                         for i in range(len(self.bones))], axis=1)  # fmt: skip
+
+    def as_dict(self, y: NDArray) -> dict[str, NDArray[np.float64]]:
+        final = self.poses(y[None])[0]
+        return {b: final[i] for i, b in enumerate(self.bones)}
+
+
+def with_block(y: NDArray, i: int, x: NDArray) -> NDArray[np.float64]:
+    """``y`` with bone ``i``'s 6 parameters replaced by ``x`` (a copy)."""
+    out = y.copy()
+    out[6 * i : 6 * i + 6] = x
+    return out
+
+
+def _block_objective(
+    X: NDArray, *, problem: Stage2Problem, i: int, level: Level, background, weight: float
+) -> NDArray[np.float64]:
+    T = problem.blocks.bone_poses(i, X)
+    bone = problem.blocks.bones[i]
+    drrs = problem.renderer.render(level.index, [bone], T[:, None], level.projections, level.shape)
+    return weight * np.sum(X[:, 3:] ** 2, axis=1) - level.score(drrs + background)
+
+
+def _joint_objective(X: NDArray, *, problem: Stage2Problem, level: Level) -> NDArray[np.float64]:
+    drrs = problem.renderer.render(level.index, problem.blocks.bones, problem.blocks.poses(X),
+                                   level.projections, level.shape)  # fmt: skip
+    return -level.score(drrs)
+
+
+@dataclass(frozen=True, eq=False)
+class Stage2Problem:
+    """What every stage-2 search shares: the blocks, renderer, levels, settings and the plan.
+
+    Attributes
+    ----------
+    blocks : Blocks
+    renderer : Renderer
+    levels : list of Level
+    settings : RegistrationSettings
+    dislocated : str or None
+        The plan's dislocated bone: the full search box and first in every sweep; the others get
+        ``stage2.range_attached``.
+    """
+
+    blocks: Blocks
+    renderer: Renderer
+    levels: list[Level]
+    settings: RegistrationSettings
+    dislocated: str | None = None
+
+    @property
+    def searched(self) -> list[int]:
+        """Levels with a stage-2 generation budget."""
+        return [lv.index for lv in self.levels if self.settings.stage2.max_generations[lv.index]]
+
+    @property
+    def fine(self) -> int:
+        s = self.searched
+        return s[-1] if s else 0
+
+    @property
+    def order(self) -> list[int]:
+        """Sweep order: the dislocated bone first."""
+        return sorted(range(len(self.blocks.bones)),
+                      key=lambda j: self.blocks.bones[j] != self.dislocated)  # fmt: skip
+
+    def objective(self, i: int, y: NDArray, level: int, weight: float = 0.0):
+        """Bone ``i``'s 6-DoF objective at ``level`` over the others' fixed DRR at ``y``, with
+        ``weight x |r|^2`` added (a rotation prior)."""
+        lv = self.levels[level]
+        others = [j for j in range(len(self.blocks.bones)) if j != i]
+        background = 0.0
+        if others:
+            current = self.blocks.poses(y[None])[:, others]
+            background = self.renderer.render(lv.index, [self.blocks.bones[j] for j in others],
+                                              current, lv.projections, lv.shape)  # fmt: skip
+        return partial(_block_objective, problem=self, i=i, level=lv, background=background,
+                       weight=weight)  # fmt: skip
+
+    def box(self, i: int) -> NDArray[np.float64]:
+        s2 = self.settings.stage2
+        held = self.dislocated is not None and self.blocks.bones[i] != self.dislocated
+        t, r = s2.range_attached if held else s2.search_range
+        return np.array([t] * 3 + [r] * 3)
+
+    def search(
+        self, i: int, y: NDArray, level: int, x0: NDArray, *, sweep: int, seed: int,
+        weight: float = 0.0,
+    ) -> CMAESResult:  # fmt: skip
+        """One bone's 6 DoF at ``level`` over the fixed DRR of the others (at ``y``); sigma is
+        divided by ``1 + sweep``."""
+        box = self.box(i)
+        return minimize_cmaes(
+            self.objective(i, y, level, weight),
+            x0,
+            sigma=self.settings.pyramid.sigmas[level] / (1 + sweep),
+            population=self.settings.stage2.populations[level],
+            seed=seed,
+            max_generations=self.settings.stage2.max_generations[level],
+            bounds=(-box, box),
+        )
+
+
+ProgressFn = Callable[[str, int, int], None] | None
+
+
+def sweeps(
+    problem: Stage2Problem, y: NDArray, seed: int, progress: ProgressFn = None
+) -> tuple[NDArray, list[CMAESResult]]:
+    """Block coordinates over every searched level; returns the parameters and every run."""
+    runs = []
+    for lv in problem.searched:
+        for sweep in range(problem.settings.stage2.sweeps):
+            for i in problem.order:
+                res = problem.search(i, y, lv, y[6 * i : 6 * i + 6], sweep=sweep,
+                                     seed=run_seed(seed, SWEEP, lv, sweep, i))  # fmt: skip
+                runs.append(res)
+                y = with_block(y, i, res.x)
+        if progress:
+            progress("stage 2", lv + 1, len(problem.levels))
+    return y, runs
+
+
+def joint(
+    problem: Stage2Problem, y: NDArray, seed: int, progress: ProgressFn = None
+) -> tuple[NDArray, list[CMAESResult]]:
+    """One CMA-ES over all ``6 x L`` parameters per searched level (the paper's stage 2)."""
+    s2 = problem.settings.stage2
+    t, r = s2.search_range
+    box = np.tile([t] * 3 + [r] * 3, len(problem.blocks.bones))
+    runs = []
+    for lv in problem.searched:
+        res = minimize_cmaes(
+            partial(_joint_objective, problem=problem, level=problem.levels[lv]),
+            y,
+            sigma=problem.settings.pyramid.sigmas[lv],
+            population=s2.populations[lv],
+            seed=run_seed(seed, JOINT, lv),
+            max_generations=s2.max_generations[lv],
+            bounds=(-box, box),
+        )
+        runs.append(res)
+        y = res.x
+        if progress:
+            progress("stage 2", lv + 1, len(problem.levels))
+    return y, runs
