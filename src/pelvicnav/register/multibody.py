@@ -28,12 +28,13 @@ from pelvicnav.drr.renderer import Renderer
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.views import ViewSet
+from pelvicnav.register.prior import joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
 from pelvicnav.register.settings import RegistrationSettings
 from pelvicnav.register.stage1 import run_stage1, stage1_body
-from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, sweeps
+from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, local, sweeps
 
 __all__ = ["register", "register_multibody"]
 
@@ -159,13 +160,16 @@ class _Stage2Outcome:
 def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> _Stage2Outcome:
     """Stage 2 from the stage-1 poses, then the re-search (sweep mode)."""
     t0 = time.perf_counter()
-    problem = Stage2Problem(Blocks.at(poses, renderer), renderer, levels, cfg, dislocated)
+    prior = None
+    if dislocated is not None and cfg.stage2.joint_prior > 0:
+        prior = joint_prior(renderer, dislocated, weight=cfg.stage2.joint_prior, seed=seed)
+    problem = Stage2Problem(Blocks.at(poses, renderer), renderer, levels, cfg, dislocated, prior)
     y = np.zeros(6 * len(renderer.bones))
-    search = sweeps if cfg.stage2.mode == "sweep" else joint
+    search = {"sweep": sweeps, "joint": joint, "local": local}[cfg.stage2.mode]
     y, runs = search(problem, y, seed, progress)
     count = cfg.research.count(len(views)) if cfg.stage2.mode == "sweep" else 0
     again = research(problem, y, views, seed, count if problem.searched else 0)
-    n_final = len(renderer.bones) if cfg.stage2.mode == "sweep" else 1
+    n_final = 1 if cfg.stage2.mode == "joint" else len(renderer.bones)
     result = StageResult("stage 2", runs, time.perf_counter() - t0, n_final, again.runs)
     return _Stage2Outcome(problem.blocks.as_dict(again.y), again.disagreement, again.warnings,
                           result)  # fmt: skip

@@ -22,4 +22,3 @@ def run_seed(seed: int, stage: int, *path: int) -> int:
     return int(
         np.random.SeedSequence([int(seed), int(stage), *map(int, path)]).generate_state(1)[0]
     )
-

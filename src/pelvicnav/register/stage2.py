@@ -21,11 +21,13 @@ from pelvicnav.drr.renderer import Renderer
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.register.cmaes import CMAESResult, minimize_cmaes
+from pelvicnav.register.local import refine_local
+from pelvicnav.register.prior import JointPrior
 from pelvicnav.register.pyramid import Level
 from pelvicnav.register.seeds import JOINT, SWEEP, run_seed
 from pelvicnav.register.settings import RegistrationSettings
 
-__all__ = ["Blocks", "Stage2Problem", "joint", "sweeps"]
+__all__ = ["Blocks", "Stage2Problem", "joint", "local", "sweeps"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,12 +76,16 @@ def with_block(y: NDArray, i: int, x: NDArray) -> NDArray[np.float64]:
 
 
 def _block_objective(
-    X: NDArray, *, problem: Stage2Problem, i: int, level: Level, background, weight: float
-) -> NDArray[np.float64]:
+    X: NDArray, *, problem: Stage2Problem, i: int, level: Level, background, weight: float,
+    others: dict | None,
+) -> NDArray[np.float64]:  # fmt: skip
     T = problem.blocks.bone_poses(i, X)
     bone = problem.blocks.bones[i]
     drrs = problem.renderer.render(level.index, [bone], T[:, None], level.projections, level.shape)
-    return weight * np.sum(X[:, 3:] ** 2, axis=1) - level.score(drrs + background)
+    f = weight * np.sum(X[:, 3:] ** 2, axis=1) - level.score(drrs + background)
+    if others is not None:  # the joint-aware prior: no interpenetration
+        f = f + problem.prior.penalty(T, others, len(level.projections))
+    return f
 
 
 def _joint_objective(X: NDArray, *, problem: Stage2Problem, level: Level) -> NDArray[np.float64]:
@@ -101,6 +107,8 @@ class Stage2Problem:
     dislocated : str or None
         The plan's dislocated bone: the full search box and first in every sweep; the others get
         ``stage2.range_attached``.
+    prior : JointPrior or None
+        Added to the objective of its bone (:mod:`pelvicnav.register.prior`).
     """
 
     blocks: Blocks
@@ -108,6 +116,7 @@ class Stage2Problem:
     levels: list[Level]
     settings: RegistrationSettings
     dislocated: str | None = None
+    prior: JointPrior | None = None
 
     @property
     def searched(self) -> list[int]:
@@ -131,12 +140,16 @@ class Stage2Problem:
         lv = self.levels[level]
         others = [j for j in range(len(self.blocks.bones)) if j != i]
         background = 0.0
+        current = self.blocks.poses(y[None])
         if others:
-            current = self.blocks.poses(y[None])[:, others]
-            background = self.renderer.render(lv.index, [self.blocks.bones[j] for j in others],
-                                              current, lv.projections, lv.shape)  # fmt: skip
+            names = [self.blocks.bones[j] for j in others]
+            background = self.renderer.render(lv.index, names, current[:, others],
+                                              lv.projections, lv.shape)  # fmt: skip
+        poses = None
+        if self.prior is not None and self.prior.bone == self.blocks.bones[i]:
+            poses = {self.blocks.bones[j]: current[0, j] for j in others}
         return partial(_block_objective, problem=self, i=i, level=lv, background=background,
-                       weight=weight)  # fmt: skip
+                       weight=weight, others=poses)  # fmt: skip
 
     def box(self, i: int) -> NDArray[np.float64]:
         s2 = self.settings.stage2
@@ -175,6 +188,30 @@ def sweeps(
             for i in problem.order:
                 res = problem.search(i, y, lv, y[6 * i : 6 * i + 6], sweep=sweep,
                                      seed=run_seed(seed, SWEEP, lv, sweep, i))  # fmt: skip
+                runs.append(res)
+                y = with_block(y, i, res.x)
+        if progress:
+            progress("stage 2", lv + 1, len(problem.levels))
+    return y, runs
+
+
+def local(
+    problem: Stage2Problem, y: NDArray, seed: int, progress: ProgressFn = None
+) -> tuple[NDArray, list[CMAESResult]]:
+    """Block coordinates with a local refinement per bone (:func:`~pelvicnav.register.local.
+    refine_local`) instead of CMA-ES: for tracking, from a pose a few mm off. Deterministic
+    (``seed`` unused); ``max_generations`` caps the iterations, the level's sigma is the first
+    difference step."""
+    runs = []
+    s2 = problem.settings.stage2
+    for lv in problem.searched:
+        for sweep in range(s2.sweeps):
+            for i in problem.order:
+                box = problem.box(i)
+                step = problem.settings.pyramid.sigmas[lv] / (1 + sweep)
+                res = refine_local(problem.objective(i, y, lv), y[6 * i : 6 * i + 6],
+                                   step=step, iterations=s2.max_generations[lv],
+                                   bounds=(-box, box))  # fmt: skip
                 runs.append(res)
                 y = with_block(y, i, res.x)
         if progress:
