@@ -5,8 +5,7 @@ registration study's simulation (an open-book dislocation of a random hip, 20 mm
 error, AP + oblique radiographs at 50 uGy) registered with ``RegistrationSettings()`` and the
 plan's dislocated bone. A case passes when every bone's centroid is within 1 mm of the truth.
 Measured when written: 3 of 3 cases pass (worst bones 0.22, 0.69, 0.38 mm; ~95 s); the test asks
-for 2 of 3, and that
-every bone over 4 mm off is flagged.
+for 2 of 3, and that every bone over 4 mm off is flagged.
 """
 
 from __future__ import annotations
