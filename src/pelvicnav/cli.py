@@ -366,6 +366,14 @@ def study_registration(
     scheduler: SchedulerOption = None,
     force: ForceOption = False,
     quick: Annotated[bool, typer.Option(help="Two cases (for CI).")] = False,
+    real_ct: Annotated[
+        int,
+        typer.Option(
+            "--real-ct",
+            help="Instead of atlas cases: N cases from each of the three real CTs "
+            "($PELVICNAV_REAL_CT or shared/data/real-ct/fracsegnet), bones in a synthetic body.",
+        ),
+    ] = 0,
 ) -> None:
     """Registration accuracy on simulated cases (in-/out-of-plane error per bone, PDE for 9 DoF).
 
@@ -385,10 +393,15 @@ def study_registration(
             raise ValueError(f"--dof must be 6 or 9, got {dof}")
         if cases < 1:
             raise ValueError(f"--cases must be >= 1, got {cases}")
+        if real_ct < 0:
+            raise ValueError(f"--real-ct must be >= 0, got {real_ct}")
         cases = 2 if quick else cases
-        a = _population(atlas)
+        a = _population(atlas) if not real_ct else None
         settings = RegistrationStudySettings.for_dof(dof, n_cases=cases, seed=seed,
-                                                     segmentation=segmentation)  # fmt: skip
+                                                     segmentation=segmentation,
+                                                     real_ct=real_ct)  # fmt: skip
+        if real_ct:
+            cases = real_ct * 3
         with _study_progress() as bar:
             task = bar.add_task("cases", total=cases)
             rows = run_registration_study(

@@ -25,7 +25,14 @@ from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.phantom.ctsynth import SynthCT, _winding_inside, bone_mask, paint_beads
 
-__all__ = ["PATTERNS", "Dislocation", "apply_dislocation", "draw_dislocation", "reduction_stages"]
+__all__ = [
+    "PATTERNS",
+    "Dislocation",
+    "apply_dislocation",
+    "draw_dislocation",
+    "move_bone_voxels",
+    "reduction_stages",
+]
 
 BONES = ("sacrum", "left_hip", "right_hip")
 PATTERNS = ("si", "ps", "open-book")
@@ -223,3 +230,59 @@ def apply_dislocation(
         bead_radius=ct.bead_radius,
     )
     return moved_ct, moved
+
+
+def move_bone_voxels(
+    hu: ArrayLike,
+    labels: ArrayLike,
+    world_from_ijk: ArrayLike,
+    label: int,
+    transform: ArrayLike,
+    *,
+    rng: np.random.Generator,
+    margin_mm: float = 30.0,
+) -> tuple[NDArray[np.float32], NDArray[np.uint8], float]:
+    """Move one labelled bone of a CT by a rigid ``transform`` (world mm), voxel-wise.
+
+    For CTs without meshes (the real CTs): the bone's CT numbers are resampled at its new place
+    (trilinear; its label nearest), the voxels it leaves become soft tissue (40 HU, noise 8 HU).
+    Only the bone's bounding box grown by ``margin_mm`` is touched.
+
+    Returns
+    -------
+    hu : float32, labels : uint8
+        The moved CT and label map (same grid).
+    overlap : float
+        Fraction of the moved bone's voxels that landed on another bone (kept as the other bone).
+    """
+    from scipy.ndimage import map_coordinates
+
+    data = np.asarray(hu, dtype=np.float32)
+    lab = np.asarray(labels)
+    A = np.asarray(world_from_ijk, dtype=np.float64)
+    mask = lab == label
+    if not mask.any():
+        raise ValueError(f"no voxel of label {label} to move")
+    sp = np.linalg.norm(A[:3, :3], axis=0)
+    where = np.argwhere(mask)
+    pad = np.ceil(margin_mm / sp).astype(int)
+    lo = np.maximum(where.min(axis=0) - pad, 0)
+    hi = np.minimum(where.max(axis=0) + pad + 1, lab.shape)
+    box = tuple(slice(lo[d], hi[d]) for d in range(3))
+    grid = np.stack(np.meshgrid(*[np.arange(lo[d], hi[d]) for d in range(3)], indexing="ij"), -1)
+    M = np.linalg.inv(A) @ tf.invert(np.asarray(transform, dtype=np.float64)) @ A
+    src = grid.reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]  # ijk the new voxel comes from
+    new_mask = map_coordinates(mask.astype(np.float32), src.T, order=0, cval=0.0) > 0.5
+    new_hu = map_coordinates(data, src.T, order=1, cval=0.0)
+    new_mask = new_mask.reshape(grid.shape[:3])
+    out_hu, out_lab = data.copy(), lab.astype(np.uint8).copy()
+    sub_hu, sub_lab = out_hu[box], out_lab[box]
+    others = (sub_lab > 0) & (sub_lab != label)
+    vacated = (sub_lab == label) & ~new_mask
+    sub_hu[vacated] = 40.0 + rng.normal(0, 8, int(vacated.sum())).astype(np.float32)
+    sub_lab[sub_lab == label] = 0
+    placed = new_mask & ~others
+    sub_hu[placed] = new_hu.reshape(grid.shape[:3])[placed]
+    sub_lab[placed] = label
+    overlap = float((new_mask & others).sum() / max(int(new_mask.sum()), 1))
+    return out_hu, out_lab, overlap

@@ -55,6 +55,8 @@ class RegistrationStudySettings:
     segmentation: str = "truth"
     beads: int = 0
     carm: tuple[tuple[str, float], ...] = ()
+    real_ct: int = 0  # > 0: that many cases from each real CT instead of atlas cases
+    real_ct_dir: str = ""
 
     @classmethod
     def for_dof(cls, dof: int, **kwargs) -> RegistrationStudySettings:
@@ -82,7 +84,6 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
     from pelvicnav.io.views import ViewSet
     from pelvicnav.phantom.ctsynth import CTOptions, synthesize_ct
     from pelvicnav.phantom.dislocate import apply_dislocation, draw_dislocation
-    from pelvicnav.phantom.xray import simulate_radiograph, standard_view
 
     rng = np.random.default_rng(seed)
     V = np.asarray(vertices, dtype=np.float64)
@@ -93,6 +94,30 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
     iso = V.reshape(-1, 3).mean(axis=0)
     setup = _random_rigid(rng, settings.setup_mm, settings.setup_deg, iso)
     patient = Volume(moved.hu.data, setup @ moved.hu.world_from_ijk)
+    images, nominal, spacing, true_P = _radiographs(patient, iso, settings, rng)
+    truth = {b: setup.copy() for b in BONES}
+    truth[bone] = setup @ disl.transform
+    return {
+        "ct": ct.hu,
+        "labels": ct.labels,
+        "views": ViewSet.from_arrays(images, nominal, spacing),
+        "true_projections": true_P,
+        "truth": truth,
+        "bone": bone,
+        "dislocation": (disl.translation_mm, disl.rotation_deg),
+        "setup": (float(np.linalg.norm(setup[:3, 3] - (iso - setup[:3, :3] @ iso))),),
+        "centroids": {b: V[i].mean(axis=0) for i, b in enumerate(BONES)},
+        "landmarks": {b: V[i][:: max(1, len(V[i]) // 50)] for i, b in enumerate(BONES)},
+        "beads": ct.beads,
+        "bead_bones": ct.bead_bones,
+    }
+
+
+def _radiographs(patient, iso, settings: RegistrationStudySettings, rng):
+    """Each view's radiograph of ``patient`` (HU volume) and its nominal and true geometry (9 DoF:
+    the true source is off by up to ``source_error_mm``)."""
+    from pelvicnav.phantom.xray import simulate_radiograph, standard_view
+
     images, nominal, spacing, true_P = [], [], [], []
     for name in settings.views:
         carm = standard_view(name, isocenter=tuple(iso), **dict(settings.carm))
@@ -113,22 +138,61 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
         nominal.append(carm.projection_matrix)
         true_P.append(true.projection_matrix)
         spacing.append(tuple(carm.pixel_spacing))
+    return images, nominal, spacing, true_P
+
+
+def simulate_real_ct_case(folder, *, seed: int, settings: RegistrationStudySettings) -> dict:
+    """A registration case from a real CT (``shared/data/real-ct``): the bones in a synthetic
+    body (:func:`~pelvicnav.phantom.body.embed_in_body`) are the preoperative CT; for the X-ray a
+    random hip moves 10-20 mm / 5-10 deg about its centroid (redrawn while it would overlap
+    another bone by more than 0.5% of its voxels), the patient gets the set-up error, and the
+    views are simulated with quantum noise. Same keys as :func:`simulate_registration_case`."""
+    from pelvicnav.drr.volume import Volume
+    from pelvicnav.io.real_ct import read_real_ct
+    from pelvicnav.io.views import ViewSet
+    from pelvicnav.phantom.body import embed_in_body
+    from pelvicnav.phantom.dislocate import move_bone_voxels
+
+    rng = np.random.default_rng(seed)
+    real = read_real_ct(folder)
+    A = real.world_from_ijk
+    hu = embed_in_body(real.hu, real.labels, A, rng=rng)
+    pts = {b: Volume(hu, A).world_points(np.argwhere(real.labels == k + 1))
+           for k, b in enumerate(BONES)}  # fmt: skip
+    bone = ("left_hip", "right_hip")[int(rng.integers(2))]
+    c = pts[bone].mean(axis=0)
+    for _ in range(20):
+        move = _random_rigid_between(rng, (10.0, 20.0), (5.0, 10.0), c)
+        moved, _, overlap = move_bone_voxels(hu, real.labels, A, BONES.index(bone) + 1, move,
+                                             rng=rng)  # fmt: skip
+        if overlap <= 0.005:
+            break
+    iso = np.concatenate(list(pts.values())).mean(axis=0)
+    setup = _random_rigid(rng, settings.setup_mm, settings.setup_deg, iso)
+    images, nominal, spacing, true_P = _radiographs(Volume(moved, setup @ A), iso, settings, rng)
     truth = {b: setup.copy() for b in BONES}
-    truth[bone] = setup @ disl.transform
+    truth[bone] = setup @ move
+    D = move[:3, :3]
     return {
-        "ct": ct.hu,
-        "labels": ct.labels,
-        "views": ViewSet.from_arrays(images, nominal, spacing),
-        "true_projections": true_P,
-        "truth": truth,
-        "bone": bone,
-        "dislocation": (disl.translation_mm, disl.rotation_deg),
+        "ct": Volume(hu, A), "labels": real.labels, "bone": bone, "truth": truth,
+        "views": ViewSet.from_arrays(images, nominal, spacing), "true_projections": true_P,
+        "dislocation": (float(np.linalg.norm(tf.apply(move, c[None])[0] - c)),
+                        float(np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(D))))),
         "setup": (float(np.linalg.norm(setup[:3, 3] - (iso - setup[:3, :3] @ iso))),),
-        "centroids": {b: V[i].mean(axis=0) for i, b in enumerate(BONES)},
-        "landmarks": {b: V[i][:: max(1, len(V[i]) // 50)] for i, b in enumerate(BONES)},
-        "beads": ct.beads,
-        "bead_bones": ct.bead_bones,
-    }
+        "centroids": {b: p.mean(axis=0) for b, p in pts.items()},
+        "landmarks": {b: p[:: max(1, len(p) // 50)] for b, p in pts.items()},
+        "beads": np.zeros((0, 3)), "bead_bones": np.zeros(0, dtype=int), "real_ct": real.name,
+    }  # fmt: skip
+
+
+def _random_rigid_between(rng, mm: tuple, deg: tuple, centre) -> NDArray[np.float64]:
+    """A rigid motion about ``centre``: |t| uniform in ``mm``, angle uniform in ``deg``."""
+    d, a = rng.normal(size=3), rng.normal(size=3)
+    t = d / np.linalg.norm(d) * rng.uniform(*mm)
+    r = a / np.linalg.norm(a) * np.deg2rad(rng.uniform(*deg))
+    c = np.asarray(centre, dtype=np.float64)
+    to, back = tf.from_params(c + t, [0, 0, 0]), tf.from_params(-c, [0, 0, 0])
+    return to @ tf.from_params([0, 0, 0], r) @ back
 
 
 def _errors(case, result) -> list[dict]:
@@ -171,6 +235,8 @@ def registration_study(atlas: Atlas, settings: RegistrationStudySettings | None 
     if cfg.dof == 9 and len(cfg.views) != 1:
         cfg = replace(cfg, views=cfg.views[:1])
     reg = registration or RegistrationSettings.for_dof(cfg.dof)
+    if cfg.real_ct:
+        return _real_ct_study(cfg, reg)
     cases = []
     for i in range(cfg.n_cases):
         s = i % atlas.n_subjects
@@ -185,13 +251,37 @@ def registration_study(atlas: Atlas, settings: RegistrationStudySettings | None 
     return Study("registration", meta, tuple(cases), run_registration_case)
 
 
+def _real_ct_study(cfg: RegistrationStudySettings, reg) -> Study:
+    """``cfg.real_ct`` cases from each real CT (``shared/data/real-ct``)."""
+    from pelvicnav.io.real_ct import REAL_CT_CASES, default_real_ct_dir
+
+    if cfg.segmentation != "truth":
+        raise ValueError("the real-CT cases register with their manual labels (segmentation truth)")
+    root = Path(cfg.real_ct_dir) if cfg.real_ct_dir else default_real_ct_dir()
+    if root is None or not all((root / n).is_dir() for n in REAL_CT_CASES):
+        raise ValueError(f"real CTs not found (looked in {root}; set PELVICNAV_REAL_CT to the "
+                         "folder holding 002, 004, 005)")  # fmt: skip
+    cases = []
+    for i in range(cfg.real_ct * len(REAL_CT_CASES)):
+        name = REAL_CT_CASES[i % len(REAL_CT_CASES)]
+        cases.append({"case_id": f"real-{name}-{i // len(REAL_CT_CASES):03d}", "index": i,
+                      "subject": name, "real_ct": str(root / name), "seed": cfg.seed * 1000 + i,
+                      "registration_seed": cfg.seed + i, "settings": cfg,
+                      "registration": reg})  # fmt: skip
+    meta = {"study": asdict(cfg), "registration": asdict(reg), "real_ct": list(REAL_CT_CASES)}
+    return Study("registration", meta, tuple(cases), run_registration_case)
+
+
 def run_registration_case(case: dict) -> list[dict]:
-    """Simulate one case and register it; one row per bone."""
+    """Simulate one case (atlas subject or real CT) and register it; one row per bone."""
     from pelvicnav.register.multibody import register_multibody
 
     t0 = time.perf_counter()
-    sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
-                                     settings=case["settings"])  # fmt: skip
+    if "real_ct" in case:
+        sim = simulate_real_ct_case(case["real_ct"], seed=case["seed"], settings=case["settings"])
+    else:
+        sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
+                                         settings=case["settings"])  # fmt: skip
     t_sim = time.perf_counter() - t0
     labels, seg = sim["labels"], {}
     if case["settings"].segmentation == "asm":
