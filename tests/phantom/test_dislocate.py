@@ -7,6 +7,8 @@ import pytest
 
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.phantom.dislocate import move_bone_voxels
+
+
 def test_move_bone_voxels_translates_a_labelled_block_and_reports_overlap():
     hu = np.full((30, 20, 20), 50.0, dtype=np.float32)
     labels = np.zeros(hu.shape, dtype=np.uint8)
@@ -18,7 +20,7 @@ def test_move_bone_voxels_translates_a_labelled_block_and_reports_overlap():
     rng = np.random.default_rng(0)
     new_hu, new_lab, overlap = move_bone_voxels(hu, labels, A, 2, move, rng=rng)
     assert overlap == 0.0
-    assert np.array_equal(np.argwhere(new_lab == 2), np.argwhere(labels == 2) + [4, 0, 0])
+    assert np.array_equal(np.argwhere(new_lab == 2), np.argwhere(labels == 2) + np.array([4, 0, 0]))
     np.testing.assert_allclose(new_hu[16:22, 10, 10], np.linspace(300, 900, 6), atol=1e-3)
     vacated = (labels == 2) & (new_lab == 0)
     assert vacated.sum() == 4 * 100 and abs(np.median(new_hu[vacated]) - 40.0) < 5
