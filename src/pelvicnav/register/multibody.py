@@ -34,7 +34,7 @@ from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
 from pelvicnav.register.settings import RegistrationSettings
 from pelvicnav.register.stage1 import run_stage1, stage1_body
-from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, local, sweeps
+from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, sweeps
 
 __all__ = ["register", "register_multibody"]
 
@@ -165,9 +165,9 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
         prior = joint_prior(renderer, dislocated, weight=cfg.stage2.joint_prior, seed=seed)
     problem = Stage2Problem(Blocks.at(poses, renderer), renderer, levels, cfg, dislocated, prior)
     y = np.zeros(6 * len(renderer.bones))
-    search = {"sweep": sweeps, "joint": joint, "local": local}[cfg.stage2.mode]
+    search = joint if cfg.stage2.mode == "joint" else sweeps
     y, runs = search(problem, y, seed, progress)
-    count = cfg.research.count(len(views)) if cfg.stage2.mode == "sweep" else 0
+    count = cfg.research.count(len(views)) if cfg.stage2.mode != "joint" else 0
     again = research(problem, y, views, seed, count if problem.searched else 0)
     n_final = 1 if cfg.stage2.mode == "joint" else len(renderer.bones)
     result = StageResult("stage 2", runs, time.perf_counter() - t0, n_final, again.runs)

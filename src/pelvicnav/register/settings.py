@@ -108,11 +108,15 @@ class Stage2Settings:
     ----------
     enabled : bool
         Run stage 2 (else every bone takes the stage-1 pose).
-    mode : "sweep" or "joint"
+    mode : "sweep", "joint" or "local"
         ``"joint"``: one CMA-ES over all 6 x L parameters (the paper). ``"sweep"`` (default):
         block coordinates, each bone's 6 DoF in turn over the fixed DRR of the others, ``sweeps``
         sweeps per level (sigma halved on the second). DRRs add, so a candidate renders one bone
-        instead of all: on simulated cases 3-4x faster at the same accuracy.
+        instead of all: on simulated cases 3-4x faster at the same accuracy. ``"local"``: the
+        sweeps with a local refinement (:mod:`pelvicnav.register.local`) instead of CMA-ES at
+        every level (``max_generations`` caps its iterations).
+    fine : "cmaes" or "local"
+        The search of the finest searched level in the sweeps and the re-search.
     sweeps : int
     populations : per level
         Population of each problem (default 30 and 20: the paper's 100 is for its 18-DoF joint
@@ -140,10 +144,13 @@ class Stage2Settings:
     search_range: tuple[float, float] = (25.0, 12.0)
     range_attached: tuple[float, float] = (8.0, 4.0)
     joint_prior: float = 0.0
+    fine: str = "cmaes"
 
     def __post_init__(self) -> None:
         if not self.joint_prior >= 0:
             raise ValueError(f"joint_prior must be >= 0, got {self.joint_prior}")
+        if self.fine not in ("cmaes", "local"):
+            raise ValueError(f"stage-2 fine must be 'cmaes' or 'local', got {self.fine!r}")
         if self.mode not in ("joint", "sweep", "local"):
             raise ValueError(f"stage-2 mode must be 'joint', 'sweep' or 'local', got {self.mode!r}")
         if self.sweeps < 1:

@@ -6,6 +6,9 @@ stage-1 pose. Two ways to search them, coarse to fine over the pyramid:
 * :func:`sweeps` (default) — block coordinates: each bone's 6 DoF in turn over the fixed DRR of
   the others (DRRs add, so a candidate renders one bone), the dislocated bone first;
 * :func:`joint` — one CMA-ES over all ``6 x L`` parameters (the paper).
+
+Each block search is CMA-ES or, where :meth:`Stage2Problem.is_local`, the local refinement of
+:mod:`~pelvicnav.register.local` (``max_generations`` then caps its iterations).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from pelvicnav.register.pyramid import Level
 from pelvicnav.register.seeds import JOINT, SWEEP, run_seed
 from pelvicnav.register.settings import RegistrationSettings
 
-__all__ = ["Blocks", "Stage2Problem", "joint", "local", "sweeps"]
+__all__ = ["Blocks", "Stage2Problem", "joint", "sweeps"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,6 +131,12 @@ class Stage2Problem:
         s = self.searched
         return s[-1] if s else 0
 
+    def is_local(self, level: int) -> bool:
+        """Whether ``level`` searches by local refinement (``mode="local"``: every level;
+        ``fine="local"``: the finest searched level) instead of CMA-ES."""
+        s2 = self.settings.stage2
+        return s2.mode == "local" or (s2.fine == "local" and level == self.fine)
+
     @property
     def order(self) -> list[int]:
         """Sweep order: the dislocated bone first."""
@@ -161,9 +170,15 @@ class Stage2Problem:
         self, i: int, y: NDArray, level: int, x0: NDArray, *, sweep: int, seed: int,
         weight: float = 0.0,
     ) -> CMAESResult:  # fmt: skip
-        """One bone's 6 DoF at ``level`` over the fixed DRR of the others (at ``y``); sigma is
-        divided by ``1 + sweep``."""
+        """One bone's 6 DoF at ``level`` over the fixed DRR of the others (at ``y``): CMA-ES, or
+        the local refinement where :meth:`is_local`; sigma (the first difference step) is divided
+        by ``1 + sweep``."""
         box = self.box(i)
+        if self.is_local(level):
+            return refine_local(self.objective(i, y, level, weight), x0,
+                                step=self.settings.pyramid.sigmas[level] / (1 + sweep),
+                                iterations=self.settings.stage2.max_generations[level],
+                                bounds=(-box, box))  # fmt: skip
         return minimize_cmaes(
             self.objective(i, y, level, weight),
             x0,
@@ -188,30 +203,6 @@ def sweeps(
             for i in problem.order:
                 res = problem.search(i, y, lv, y[6 * i : 6 * i + 6], sweep=sweep,
                                      seed=run_seed(seed, SWEEP, lv, sweep, i))  # fmt: skip
-                runs.append(res)
-                y = with_block(y, i, res.x)
-        if progress:
-            progress("stage 2", lv + 1, len(problem.levels))
-    return y, runs
-
-
-def local(
-    problem: Stage2Problem, y: NDArray, seed: int, progress: ProgressFn = None
-) -> tuple[NDArray, list[CMAESResult]]:
-    """Block coordinates with a local refinement per bone (:func:`~pelvicnav.register.local.
-    refine_local`) instead of CMA-ES: for tracking, from a pose a few mm off. Deterministic
-    (``seed`` unused); ``max_generations`` caps the iterations, the level's sigma is the first
-    difference step."""
-    runs = []
-    s2 = problem.settings.stage2
-    for lv in problem.searched:
-        for sweep in range(s2.sweeps):
-            for i in problem.order:
-                box = problem.box(i)
-                step = problem.settings.pyramid.sigmas[lv] / (1 + sweep)
-                res = refine_local(problem.objective(i, y, lv), y[6 * i : 6 * i + 6],
-                                   step=step, iterations=s2.max_generations[lv],
-                                   bounds=(-box, box))  # fmt: skip
                 runs.append(res)
                 y = with_block(y, i, res.x)
         if progress:
