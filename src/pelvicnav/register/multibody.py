@@ -184,8 +184,9 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
     similarity = float(fine.score(drrs)[0])
     warnings = []
     converged = all(s.converged for s in stages)
-    if not converged:
-        warnings.append("a CMA-ES level hit its generation limit while still improving")
+    for s in stages:
+        if not s.converged:
+            warnings.append(f"{s.name}: a search hit its generation limit while still improving")
     if ambiguous:
         converged = False
         warnings.extend(ambiguous)
