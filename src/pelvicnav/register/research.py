@@ -95,11 +95,12 @@ def research(
                 out.y = with_block(out.y, i, x_alt)
                 if apart:  # another basin: the other bones were fitted over a wrong DRR
                     out.y = _repass(problem, out.y, r, seed, out)
-            if len(views) == 1 and d_mm > rs.single_view_flag_mm:
-                out.warnings.append(
-                    f"the re-search of {bones[i]} ended {d_mm:.1f} mm away at the detector: with "
-                    "one view its pose is not determined"
-                )
+            if len(views) == 1:  # judged where the bone projects, whatever the scores
+                if d_mm > rs.single_view_flag_mm:
+                    out.warnings.append(
+                        f"the re-search of {bones[i]} ended {d_mm:.1f} mm away at the detector: "
+                        "with one view its pose is not determined"
+                    )
             elif apart and abs(f_alt - f_now) < rs.ambiguity_score:  # both answers fit
                 out.warnings.append(
                     f"two searches for {bones[i]} from the same start ended {d_mm:.1f} mm / "
