@@ -206,7 +206,7 @@ def run_stage1(
         res = minimize_cmaes(
             objective,
             x,
-            sigma=settings.pyramid.sigmas[lv.index],
+            sigma=(s1.sigmas or settings.pyramid.sigmas)[lv.index],
             population=s1.populations[lv.index],
             seed=run_seed(seed, STAGE1, lv.index),
             max_generations=s1.max_generations[lv.index],
