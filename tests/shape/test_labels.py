@@ -60,3 +60,14 @@ def test_swapped_sides_missing_bones_and_soft_tissue_are_refused():
 def test_bad_schemes(text, message):
     with pytest.raises(ValueError, match=message):
         parse_scheme(text)
+
+
+def test_relabelling_by_table_matches_the_per_value_path():
+    lab = np.random.default_rng(0).integers(0, 100, (20, 16, 12)).astype(np.int16)
+    scheme = parse_scheme("totalsegmentator")
+    fast = to_bone_labels(lab, scheme)
+    slow = to_bone_labels(lab.astype(np.float32), scheme)  # floats take the np.isin path
+    assert fast.dtype == np.uint8 and np.array_equal(fast, slow)
+    assert np.array_equal(fast == 3, lab == 78) and np.array_equal(
+        fast == 1, np.isin(lab, (25, 26))
+    )

@@ -64,6 +64,13 @@ def parse_scheme(text: str) -> dict[str, tuple[int, ...]]:
 def to_bone_labels(labels: ArrayLike, scheme: dict[str, tuple[int, ...]]) -> NDArray[np.uint8]:
     """Relabel a map into ours (0 background, 1, 2, 3); labels outside the scheme become 0."""
     lab = np.asarray(labels)
+    if lab.size and lab.dtype.kind in "iub":  # one table lookup (np.isin per bone: 4 s each on
+        lo, hi = int(lab.min()), int(lab.max())  # a 512 x 512 x 400 map)
+        if lo >= 0 and hi < 2**16:
+            lut = np.zeros(hi + 1, dtype=np.uint8)
+            for bone, values in scheme.items():
+                lut[[v for v in values if 0 <= v <= hi]] = LABELS[bone]
+            return lut[lab]
     out = np.zeros(lab.shape, dtype=np.uint8)
     for bone, values in scheme.items():
         out[np.isin(lab, values)] = LABELS[bone]
