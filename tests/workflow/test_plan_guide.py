@@ -113,11 +113,11 @@ def test_plan_then_guide_two_frames(case, tmp_path):
             "transforms/residual.tfm",
         ):
             assert (session / f"frame-00{frame}" / name).is_file()  # fmt: skip
-    # the residual seen now equals the plan's (the images show the CT's dislocation)
+    # the residual seen now equals the plan's (the images show the CT's dislocation); it is the
+    # hip relative to the reference bone, each registered within 1 mm above: within 2 mm
     planned = np.asarray(doc["residual_in_ct"]["left_hip"]["translation_mm"])
-    assert (
-        np.linalg.norm(np.asarray(record["residual"]["left_hip"]["translation_mm"]) - planned) < 1
-    )
+    seen = np.asarray(record["residual"]["left_hip"]["translation_mm"])
+    assert np.linalg.norm(seen - planned) < 2.0
     session_doc = json.loads((session / "session.json").read_text())
     assert [f["mode"] for f in session_doc["frames"]] == ["first", "tracking"]
     assert _check_report(session / "report.html") == 2 + 2 * 2
