@@ -119,7 +119,7 @@ def check_bone_labels(
     ct = np.asarray(hu)
     lab = np.asarray(labels)
     A = np.asarray(world_from_ijk, dtype=np.float64)
-    hint = _likely_scheme(np.asarray(raw_labels if raw_labels is not None else labels))
+    raw = np.asarray(raw_labels if raw_labels is not None else labels)
     voxel_mm3 = abs(np.linalg.det(A[:3, :3]))
     centres = {}
     for bone in BONES:
@@ -128,13 +128,14 @@ def check_bone_labels(
         if volume < MIN_BONE_VOLUME_MM3:
             raise ValueError(
                 f"{source}: {bone} (label {LABELS[bone]}) has {volume:.0f} mm^3 of voxels, "
-                f"not a bone (at least {MIN_BONE_VOLUME_MM3:.0f} expected).{hint}"
+                f"not a bone (at least {MIN_BONE_VOLUME_MM3:.0f} expected).{_likely_scheme(raw)}"
             )
         median = float(np.median(ct[mask]))
         if median < MIN_BONE_MEDIAN_HU:
             raise ValueError(
                 f"{source}: {bone} (label {LABELS[bone]}) has median {median:.0f} HU, which is "
-                f"soft tissue, not bone (expected above {MIN_BONE_MEDIAN_HU:.0f} HU).{hint}"
+                f"soft tissue, not bone (expected above {MIN_BONE_MEDIAN_HU:.0f} HU)."
+                f"{_likely_scheme(raw)}"
             )
         ijk = np.argwhere(mask).mean(axis=0)
         centres[bone] = (A @ np.r_[ijk, 1.0])[:3]
@@ -143,5 +144,6 @@ def check_bone_labels(
         raise ValueError(
             f"{source}: the left innominate (label 2) must lie on the patient's left of the "
             f"sacrum and the right one (label 3) on the right (LPS x {x['left_hip']:.0f}, "
-            f"{x['sacrum']:.0f}, {x['right_hip']:.0f} mm): labels swapped, or not ours?{hint}"
+            f"{x['sacrum']:.0f}, {x['right_hip']:.0f} mm): labels swapped, or not ours?"
+            f"{_likely_scheme(raw)}"
         )
