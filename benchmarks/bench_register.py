@@ -68,25 +68,11 @@ def _errors(poses: dict, case: dict) -> list[float]:
             for b, c in case["centroids"].items()]  # fmt: skip
 
 
-def _nudged(poses: dict, case: dict, rng: np.random.Generator) -> dict:
-    """Every bone moved 3 mm / 2 deg about its centroid, a random direction each."""
-    from pelvicnav.geometry import transforms as tf
-
-    out = {}
-    for b, c0 in case["centroids"].items():
-        c = tf.apply(poses[b], c0[None])[0]
-        d, a = rng.normal(size=3), rng.normal(size=3)
-        step = tf.from_params(
-            c + 3.0 * d / np.linalg.norm(d), np.deg2rad(2.0) * a / np.linalg.norm(a)
-        )
-        out[b] = step @ tf.from_params(-c, [0, 0, 0]) @ poses[b]
-    return out
-
-
 def _registrations(case: dict) -> tuple[dict, dict, dict]:
     from pelvicnav.register.multibody import register_multibody
     from pelvicnav.register.pyramid import splat_renderer
     from pelvicnav.register.settings import RegistrationSettings
+    from pelvicnav.studies.runtime import nudged_poses
 
     cfg = RegistrationSettings()
     runs, renderer, res = [], None, None
@@ -106,7 +92,7 @@ def _registrations(case: dict) -> tuple[dict, dict, dict]:
     first["meets_target"] = first["median_s"] <= TARGETS["first_s"]
     frames, rng = [], np.random.default_rng(0)
     for seed in range(3):
-        start = _nudged(res.poses, case, rng)
+        start = nudged_poses(res.poses, case["centroids"], rng)
         t0 = time.perf_counter()
         again = register_multibody(case["ct"], case["labels"], case["views"], seed=seed,
                                    init_poses=start, settings=RegistrationSettings.tracking(),

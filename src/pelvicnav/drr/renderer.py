@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -124,12 +125,19 @@ class RayCastRenderer:
     def n_levels(self) -> int:
         return self.levels
 
+    @cached_property
+    def _samples(self) -> dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+        """Each body's voxels with attenuation: (positions (n, 3) mm, attenuation (n,))."""
+        out = {}
+        for bone, v in self.volumes.items():
+            ijk = np.argwhere(v.data > 0)
+            if len(ijk) == 0:
+                raise ValueError(f"the volume of {bone} has no attenuation")
+            out[bone] = (v.world_points(ijk), np.asarray(v.data[tuple(ijk.T)], dtype=np.float64))
+        return out
+
     def _voxels(self, bone: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        v = self.volumes[bone]
-        ijk = np.argwhere(v.data > 0)
-        if len(ijk) == 0:
-            raise ValueError(f"the volume of {bone} has no attenuation")
-        return v.world_points(ijk), np.asarray(v.data[tuple(ijk.T)], dtype=np.float64)
+        return self._samples[bone]
 
     def centroid(self, bone: str, level: int = -1) -> NDArray[np.float64]:
         pts, w = self._voxels(bone)

@@ -109,13 +109,14 @@ class Level:
         return Level(self.index, self.factor, Ps, self.similarities, self.shape)
 
 
-def blurred(image: NDArray, factor: int, resolution_mm: float, depth_mm: float, P) -> NDArray:
+def blurred(image: NDArray, factor: int, resolution_mm: float, points: NDArray, P) -> NDArray:
     """A radiograph at a pyramid level, blurred like the DRR (a tent of one sample spacing at the
-    bones' depth; none for an exact renderer, ``resolution_mm`` 0)."""
+    median depth of ``points``, world mm; none for an exact renderer, ``resolution_mm`` 0)."""
     img = downsample_image(image, factor)
     if resolution_mm <= 0:
         return img
     K = pj.decompose_projection(P).intrinsics
+    depth_mm = float(np.median(pj.depth(P, points)))
     px = resolution_mm * K[0, 0] / depth_mm  # sample spacing in pixels at the bones' depth
     sigma = 0.4 * max(px, 1.0)  # a tent of half-width r has sd r / sqrt(6)
     return gaussian_filter(img, sigma, mode="nearest")
@@ -132,8 +133,7 @@ def build_levels(views: ViewSet, renderer: Renderer, pyramid: PyramidSettings) -
         Ps = np.stack([downsample_projection(P, f) for P in views.projections])
         pts = renderer.points(renderer.bones[0], lv)[::50]
         res = renderer.resolution_mm(lv)
-        imgs = [blurred(img, f, res, float(np.median(pj.depth(P, pts))), P)
-                for img, P in zip(views.images, Ps, strict=True)]  # fmt: skip
+        imgs = [blurred(img, f, res, pts, P) for img, P in zip(views.images, Ps, strict=True)]
         sims = tuple(_METRICS[metric](i) for i in imgs)
         levels.append(Level(lv, f, Ps, sims, imgs[0].shape))
     return levels

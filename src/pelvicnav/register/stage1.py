@@ -77,8 +77,9 @@ def stage1_body(
     else:
         bones, centre = (name,), renderer.centroid(name)
     start = init[bones[0]]
-    relative = np.stack([tf.invert(start) @ init[b] for b in bones])
-    if name != "pelvis":
+    if name == "pelvis":
+        relative = np.stack([tf.invert(start) @ init[b] for b in bones])
+    else:
         relative = np.eye(4)[None]
     return Body(name, bones, start, relative, np.asarray(centre, dtype=np.float64))
 

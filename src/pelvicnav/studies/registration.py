@@ -189,10 +189,8 @@ def _random_rigid_between(rng, mm: tuple, deg: tuple, centre) -> NDArray[np.floa
     """A rigid motion about ``centre``: |t| uniform in ``mm``, angle uniform in ``deg``."""
     d, a = rng.normal(size=3), rng.normal(size=3)
     t = d / np.linalg.norm(d) * rng.uniform(*mm)
-    r = a / np.linalg.norm(a) * np.deg2rad(rng.uniform(*deg))
-    c = np.asarray(centre, dtype=np.float64)
-    to, back = tf.from_params(c + t, [0, 0, 0]), tf.from_params(-c, [0, 0, 0])
-    return to @ tf.from_params([0, 0, 0], r) @ back
+    r = a / np.linalg.norm(a) * rng.uniform(*deg)
+    return pj.six_dof_pose(np.r_[t, r], center=centre)
 
 
 def _errors(case, result) -> list[dict]:

@@ -26,7 +26,14 @@ from pelvicnav import BONES
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.studies.runner import Study, flatten, run_study
 
-__all__ = ["STEPS", "RuntimeSettings", "run_runtime_case", "run_runtime_study", "runtime_study"]
+__all__ = [
+    "STEPS",
+    "RuntimeSettings",
+    "nudged_poses",
+    "run_runtime_case",
+    "run_runtime_study",
+    "runtime_study",
+]
 
 STEPS = ("segmentation_s", "planning_s", "bone_models_s", "stage1_s", "stage2_s",
          "augmentation_s", "subsequent_frame_s")  # fmt: skip
@@ -83,6 +90,21 @@ def run_runtime_case(case: dict) -> dict:
     return row
 
 
+def nudged_poses(poses: dict, centroids: dict, rng: np.random.Generator,
+                 mm: float = 3.0, deg: float = 2.0) -> dict:  # fmt: skip
+    """Every bone's pose moved by ``mm`` and turned by ``deg`` about its centroid (CT frame, mm),
+    a random direction each: the motion between two tracked frames."""
+    out = {}
+    for b, c0 in centroids.items():
+        c = tf.apply(poses[b], np.asarray(c0)[None])[0]
+        d, a = rng.normal(size=3), rng.normal(size=3)
+        step = tf.from_params(
+            c + mm * d / np.linalg.norm(d), np.deg2rad(deg) * a / np.linalg.norm(a)
+        )
+        out[b] = step @ tf.from_params(-c, [0, 0, 0]) @ poses[b]
+    return out
+
+
 def _registration_times(case: dict, sim: dict) -> dict:
     from pelvicnav.guide.overlay import bone_edges, overlay_rgb
     from pelvicnav.register.multibody import register_multibody
@@ -104,15 +126,7 @@ def _registration_times(case: dict, sim: dict) -> dict:
         edges = {b: bone_edges(models.models[-1][b], res.poses[b], P, image.shape) for b in BONES}
         overlay_rgb(image, edges, target=edges[sim["bone"]])
     out["augmentation_s"] = time.perf_counter() - t
-    rng = np.random.default_rng(case["seed"])
-    nudge = {}
-    for b in BONES:  # 3 mm / 2 deg about the bone's centroid, a random direction each
-        c = tf.apply(res.poses[b], sim["centroids"][b][None])[0]
-        d, a = rng.normal(size=3), rng.normal(size=3)
-        step = tf.from_params(
-            c + 3.0 * d / np.linalg.norm(d), np.deg2rad(2.0) * a / np.linalg.norm(a)
-        )
-        nudge[b] = step @ tf.from_params(-c, [0, 0, 0]) @ res.poses[b]
+    nudge = nudged_poses(res.poses, sim["centroids"], np.random.default_rng(case["seed"]))
     warm = RegistrationSettings.tracking()
     t = time.perf_counter()
     again = register_multibody(sim["ct"], sim["labels"], sim["views"], init_poses=nudge,

@@ -163,14 +163,15 @@ def _previous(session: Path, frames: list, n_views: int, dof: int) -> dict | Non
 
 def _register(hu, A, labels, vs, plan, previous, seed, dof, progress):
     from pelvicnav.drr.volume import Volume
+    from pelvicnav.io.views import ViewSet
     from pelvicnav.register.pyramid import splat_renderer
     from pelvicnav.register.settings import RegistrationSettings
-    from pelvicnav.workflow.register import registration_views, track_or_register
+    from pelvicnav.workflow.register import track_or_register
 
     volume = Volume(np.asarray(hu, dtype=np.float32), A)
     models = splat_renderer(volume, labels, RegistrationSettings.for_dof(dof).factors)
     result, mode = track_or_register(
-        volume, labels, registration_views(vs), models, dof=dof, seed=seed,
+        volume, labels, ViewSet(tuple(vs)), models, dof=dof, seed=seed,
         dislocated=plan.dislocated[0] if len(plan.dislocated) == 1 else None,
         previous=None if previous is None else {"poses": previous}, progress=progress,
     )  # fmt: skip

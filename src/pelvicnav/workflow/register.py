@@ -31,16 +31,8 @@ __all__ = [
     "read_init",
     "read_register_plan",
     "register_files",
-    "registration_views",
     "track_or_register",
 ]
-
-
-def registration_views(vs):
-    """The views of one registration, checked together (same shape, big enough)."""
-    from pelvicnav.io.views import ViewSet
-
-    return ViewSet(tuple(vs))
 
 
 def track_or_register(volume, labels, views, models, *, dof, seed, dislocated, previous=None,
@@ -176,7 +168,7 @@ def register_files(
     from pelvicnav.guide.overlay import write_view_overlays
     from pelvicnav.io.atomic import write_text
     from pelvicnav.io.itk_transform import write_pose_transforms
-    from pelvicnav.io.views import read_views
+    from pelvicnav.io.views import ViewSet, read_views
     from pelvicnav.register.pyramid import splat_renderer
     from pelvicnav.register.settings import RegistrationSettings
     from pelvicnav.workflow.inputs import read_ct_and_bones
@@ -195,7 +187,7 @@ def register_files(
     except ValueError as err:
         raise ValueError(f"{labels}: {err}") from None
     result, mode = track_or_register(
-        volume, lab, registration_views(vs), models, dof=dof, seed=seed, previous=previous,
+        volume, lab, ViewSet(tuple(vs)), models, dof=dof, seed=seed, previous=previous,
         dislocated=None if the_plan is None else the_plan["dislocated_bone"], progress=progress,
     )  # fmt: skip
     record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed,
