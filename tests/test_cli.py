@@ -504,3 +504,10 @@ def test_register_names_a_bad_dicom_folder(tmp_path):
     ])  # fmt: skip
     assert res.exit_code == 2
     assert "no DICOM image series" in res.output
+
+
+def test_study_registration_refuses_a_negative_real_ct_count(tmp_path):
+    res = runner.invoke(app, ["study", "registration", "--out", str(tmp_path / "r"),
+                              "--real-ct", "-1"])  # fmt: skip
+    assert res.exit_code != 0 and "--real-ct must be >= 0" in res.output
+    assert not (tmp_path / "r").exists()
