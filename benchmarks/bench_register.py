@@ -9,7 +9,8 @@ to a clinical grid, 512 x 512 x 400 at 0.8 mm (air and label 0 around), for the 
 * ``subsequent_frame`` — every bone moved 3 mm / 2 deg from the first answer, then the tracking
   registration (``RegistrationSettings.tracking()``) with the models kept (target <= 0.5 s, median
   centroid error <= 0.3 mm);
-* ``command_overhead`` — ``pelvicnav register`` on NIfTI files in a fresh process: wall time
+* ``command_overhead`` — ``pelvicnav register`` on NIfTI files (the CT as int16 HU, as scanners
+  store it) in a fresh process: wall time
   minus the registration's own seconds (imports, reading, models, writing; target <= 1.5 s);
 * kernel throughput: splatted DRRs and similarity evaluations per second per level.
 """
@@ -116,7 +117,8 @@ def _overhead(case: dict) -> dict:
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
-        write_volume(d / "ct.nii.gz", case["ct"].data, case["ct"].world_from_ijk)
+        hu = np.clip(np.round(case["ct"].data), -32768, 32767).astype(np.int16)  # as scanners
+        write_volume(d / "ct.nii.gz", hu, case["ct"].world_from_ijk)  # store it (float32: 4x)
         write_volume(d / "labels.nii.gz", case["labels"], case["ct"].world_from_ijk)
         views = case["views"]
         write_views(d, [View(f"v{k}", img.astype(np.float32), P, ps) for k, (img, P, ps)

@@ -271,3 +271,22 @@ def test_labels_stored_with_other_axes_are_put_on_the_cts_grid(tmp_path):
         read_labels(tmp_path / "off.nrrd", labels.shape, A)
     with pytest.raises(VolumeFileError, match="does not match"):
         read_labels(tmp_path / "same.nrrd", (6, 5, 5), A)
+
+
+def test_label_boxes_match_a_direct_search_on_any_strides():
+    from pelvicnav.io.volume import label_boxes
+
+    rng = np.random.default_rng(3)
+    lab = np.zeros((30, 25, 20), dtype=np.uint8)
+    lab[3:9, 4:20, 2:5] = 1
+    lab[10:28, 1:3, 7:19] = 2
+    lab[rng.integers(0, 30), rng.integers(0, 25), rng.integers(0, 20)] = 7
+    for view in (lab, np.asfortranarray(lab), lab.transpose(2, 0, 1), lab[::-1, :, ::-1]):
+        boxes = label_boxes(view, [1, 2, 3, 7])
+        assert boxes[3] is None
+        for v in (1, 2, 7):
+            ijk = np.argwhere(view == v)
+            expected = tuple(slice(int(a), int(b) + 1) for a, b in zip(ijk.min(0), ijk.max(0)))
+            assert boxes[v] == expected
+    assert label_boxes(lab.astype(np.int32) - 1, [-1, 0])[-1] == (slice(0, 30), slice(0, 25),
+                                                                  slice(0, 20))  # fmt: skip

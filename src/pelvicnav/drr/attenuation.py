@@ -11,7 +11,7 @@ from pelvicnav import LABELS
 from pelvicnav.drr.splat import PointModel, point_model
 from pelvicnav.drr.volume import Volume
 
-__all__ = ["MU_WATER_PER_MM", "bone_models", "mu_from_hu", "sample_factors"]
+__all__ = ["MU_WATER_PER_MM", "bone_models", "bone_volumes", "mu_from_hu", "sample_factors"]
 
 MU_WATER_PER_MM = 0.02059  # water at 60 keV: 0.2059 cm^-1 (NIST XCOM, with coherent)
 
@@ -27,6 +27,37 @@ def sample_factors(spacing: ArrayLike, target_mm: float) -> tuple[int, int, int]
     """Integer block sizes that bring voxel ``spacing`` (mm) closest to ``target_mm``."""
     s = np.asarray(spacing, dtype=np.float64)
     return tuple(int(max(1, round(target_mm / x))) for x in s)  # type: ignore[return-value]
+
+
+def bone_volumes(
+    ct_hu: Volume, labels: ArrayLike, *, label_values: Mapping[str, int] = LABELS
+) -> dict[str, Volume]:
+    """Each bone's attenuation (1/mm) on its bounding box of the CT grid, zero outside its label.
+
+    One pass over the label map finds every bone's box (:func:`pelvicnav.io.volume.label_boxes`);
+    the HU -> mu conversion then touches the boxes only (the bones fill a few % of a clinical CT).
+
+    Raises
+    ------
+    ValueError
+        A label map whose shape differs from the CT, or a bone with no voxel.
+    """
+    from pelvicnav.io.volume import label_boxes
+
+    lab = np.asarray(labels)
+    if lab.shape != ct_hu.shape:
+        raise ValueError(f"label map shape {lab.shape} differs from the CT's {ct_hu.shape}")
+    boxes = label_boxes(lab, [v for v in label_values.values() if v != 0])
+    out = {}
+    for bone, value in label_values.items():
+        box = boxes.get(value)
+        if box is None:
+            raise ValueError(f"the label map has no voxel of {bone} (label {value})")
+        world_from_sub = ct_hu.world_from_ijk.copy()
+        world_from_sub[:3, 3] += ct_hu.world_from_ijk[:3, :3] @ [b.start for b in box]
+        mu = np.where(lab[box] == value, mu_from_hu(ct_hu.data[box]), np.float32(0.0))
+        out[bone] = Volume(mu, world_from_sub)
+    return out
 
 
 def bone_models(
@@ -53,24 +84,6 @@ def bone_models(
     ValueError
         A label map whose shape differs from the CT, or a bone with no voxel.
     """
-    lab = np.asarray(labels)
-    if lab.shape != ct_hu.shape:
-        raise ValueError(f"label map shape {lab.shape} differs from the CT's {ct_hu.shape}")
     factors = sample_factors(ct_hu.spacing, sample_mm)
-    out = {}
-    for bone, value in label_values.items():
-        mask = lab == value
-        if not mask.any():
-            raise ValueError(f"the label map has no voxel of {bone} (label {value})")
-        # work on the bone's bounding box only (a bone fills a few % of the CT)
-        box = []
-        for axis in range(3):
-            hit = np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis)))
-            box.append(slice(int(hit[0]), int(hit[-1]) + 1))
-        sub = tuple(box)
-        world_from_sub = ct_hu.world_from_ijk.copy()
-        world_from_sub[:3, 3] = ct_hu.world_from_ijk[:3, :3] @ [b.start for b in box]
-        world_from_sub[:3, 3] += ct_hu.world_from_ijk[:3, 3]
-        mu = np.where(mask[sub], mu_from_hu(ct_hu.data[sub]), np.float32(0.0))
-        out[bone] = point_model(Volume(mu, world_from_sub), factors)
-    return out
+    vols = bone_volumes(ct_hu, labels, label_values=label_values)
+    return {bone: point_model(v, factors) for bone, v in vols.items()}

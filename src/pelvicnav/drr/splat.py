@@ -80,29 +80,43 @@ def point_model(volume: Volume, factors: Sequence[int] = (1, 1, 1)) -> PointMode
     f = tuple(int(x) for x in factors)
     if len(f) != 3 or min(f) < 1:
         raise ValueError(f"factors must be three positive integers, got {factors}")
-    data = np.asarray(volume.data, dtype=np.float64)
+    data = volume.data
     if np.any(data < 0):
         raise ValueError("attenuation must be non-negative")
-    shape = [int(np.ceil(s / k)) * k for s, k in zip(data.shape, f, strict=True)]
-    padded = np.zeros(shape)
-    padded[: data.shape[0], : data.shape[1], : data.shape[2]] = data
-    blocks = [s // k for s, k in zip(shape, f, strict=True)]
-    view = padded.reshape(blocks[0], f[0], blocks[1], f[1], blocks[2], f[2])
-    mass = view.sum(axis=(1, 3, 5))
-    # mass-weighted index centre of each block
-    idx = []
-    for axis, k in enumerate(f):
-        offs = np.arange(k, dtype=np.float64)
-        shape_w = [1] * 6
-        shape_w[2 * axis + 1] = k
-        moment = (view * offs.reshape(shape_w)).sum(axis=(1, 3, 5))
-        base = (np.arange(blocks[axis]) * k).reshape([-1 if a == axis else 1 for a in range(3)])
-        idx.append(base + moment / np.where(mass > 0, mass, 1.0))
+    blocks = [int(np.ceil(n / k)) for n, k in zip(data.shape, f, strict=True)]
+    sums = np.zeros((4, *blocks))  # mass, then its first moment along i, j, k
+    _compile_blocks()(data, np.asarray(f, dtype=np.int64), sums)
+    mass = sums[0]
     keep = mass > 0
-    ijk = np.stack([np.broadcast_to(i, mass.shape)[keep] for i in idx], axis=1)
+    ijk = np.stack([sums[1 + a][keep] / mass[keep] for a in range(3)], axis=1)
     voxel_volume = abs(np.linalg.det(volume.world_from_ijk[:3, :3]))
     spacing = float(np.max(volume.spacing * np.asarray(f)))
     return PointModel(volume.world_points(ijk), mass[keep] * voxel_volume, spacing)
+
+
+@functools.cache  # compile once per process, on first use
+def _compile_blocks():  # pragma: no cover - compiled code
+    import numba as nb
+
+    @nb.njit(cache=True)
+    def kernel(data, f, sums):
+        """Per block of ``f`` voxels: the summed values and their value-weighted voxel index."""
+        ni, nj, nk = data.shape
+        for i in range(ni):
+            bi = i // f[0]
+            for j in range(nj):
+                bj = j // f[1]
+                for k in range(nk):
+                    v = np.float64(data[i, j, k])
+                    if v == 0.0:
+                        continue
+                    bk = k // f[2]
+                    sums[0, bi, bj, bk] += v
+                    sums[1, bi, bj, bk] += v * i
+                    sums[2, bi, bj, bk] += v * j
+                    sums[3, bi, bj, bk] += v * k
+
+    return kernel
 
 
 def _intrinsics(P: NDArray) -> tuple[float, float, float, float]:

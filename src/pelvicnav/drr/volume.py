@@ -19,7 +19,7 @@ class Volume:
     Attributes
     ----------
     data : (ni, nj, nk) float32
-        Values per voxel (e.g. linear attenuation in 1/mm for DRRs, HU for CT).
+        Values per voxel, in any memory order (e.g. linear attenuation in 1/mm for DRRs, HU for CT).
     world_from_ijk : (4, 4) float64
         Affine from voxel indices to world (LPS mm). Spacing and orientation derive from it.
     """
@@ -28,7 +28,7 @@ class Volume:
     world_from_ijk: NDArray[np.float64]
 
     def __post_init__(self) -> None:
-        d = np.ascontiguousarray(self.data, dtype=np.float32)
+        d = np.asarray(self.data, dtype=np.float32)  # any memory order (NIfTI reads as Fortran)
         if d.ndim != 3 or min(d.shape) < 1:
             raise ValueError(f"volume data must be a non-empty 3D array, got shape {d.shape}")
         if not np.all(np.isfinite(d)):
