@@ -286,7 +286,8 @@ def test_label_boxes_match_a_direct_search_on_any_strides():
         assert boxes[3] is None
         for v in (1, 2, 7):
             ijk = np.argwhere(view == v)
-            expected = tuple(slice(int(a), int(b) + 1) for a, b in zip(ijk.min(0), ijk.max(0)))
+            lo, hi = ijk.min(0), ijk.max(0)
+            expected = tuple(slice(int(a), int(b) + 1) for a, b in zip(lo, hi, strict=True))
             assert boxes[v] == expected
     assert label_boxes(lab.astype(np.int32) - 1, [-1, 0])[-1] == (slice(0, 30), slice(0, 25),
                                                                   slice(0, 20))  # fmt: skip
