@@ -11,7 +11,8 @@ from pelvicnav import LABELS
 from pelvicnav.drr.splat import PointModel, point_model
 from pelvicnav.drr.volume import Volume
 
-__all__ = ["MU_WATER_PER_MM", "bone_models", "bone_volumes", "mu_from_hu", "sample_factors"]
+__all__ = ["MU_WATER_PER_MM", "bone_models", "bone_volumes", "mu_from_hu", "sample_factors",
+           "sample_volumes"]  # fmt: skip
 
 MU_WATER_PER_MM = 0.02059  # water at 60 keV: 0.2059 cm^-1 (NIST XCOM, with coherent)
 
@@ -84,6 +85,9 @@ def bone_models(
     ValueError
         A label map whose shape differs from the CT, or a bone with no voxel.
     """
-    factors = sample_factors(ct_hu.spacing, sample_mm)
-    vols = bone_volumes(ct_hu, labels, label_values=label_values)
-    return {bone: point_model(v, factors) for bone, v in vols.items()}
+    return sample_volumes(bone_volumes(ct_hu, labels, label_values=label_values), sample_mm)
+
+
+def sample_volumes(volumes: Mapping[str, Volume], sample_mm: float) -> dict[str, PointModel]:
+    """Point models of attenuation volumes (:func:`bone_volumes`) at about ``sample_mm``."""
+    return {b: point_model(v, sample_factors(v.spacing, sample_mm)) for b, v in volumes.items()}

@@ -15,9 +15,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter
 
-from pelvicnav.drr.attenuation import bone_volumes, sample_factors
+from pelvicnav.drr.attenuation import bone_volumes, sample_volumes
 from pelvicnav.drr.renderer import Renderer, SplatRenderer
-from pelvicnav.drr.splat import point_model
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.io.views import ViewSet
@@ -72,9 +71,7 @@ def splat_renderer(ct_hu: Volume, labels: ArrayLike, factors: Sequence[int]) -> 
     """Bone point models for each pyramid level (sample spacing ``SAMPLE_MM_PER_FACTOR`` x
     factor). Build once per CT and pass to every frame's registration."""
     vols = bone_volumes(ct_hu, labels)  # the attenuation once, sampled per level
-    return SplatRenderer(tuple(
-        {b: point_model(v, sample_factors(ct_hu.spacing, SAMPLE_MM_PER_FACTOR * f))
-         for b, v in vols.items()} for f in factors))  # fmt: skip
+    return SplatRenderer(tuple(sample_volumes(vols, SAMPLE_MM_PER_FACTOR * f) for f in factors))
 
 
 @dataclass(frozen=True, eq=False)
