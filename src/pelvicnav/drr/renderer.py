@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pelvicnav.drr.projector import render
-from pelvicnav.drr.splat import PointModel, splat
+from pelvicnav.drr.splat import PointModel, splat, splat_pullback
 from pelvicnav.drr.volume import Volume
 
 __all__ = ["RayCastRenderer", "Renderer", "SplatRenderer"]
@@ -99,6 +99,12 @@ class SplatRenderer:
 
     def render(self, level, bones, poses, projections, shape):
         return splat([self.models[level][b] for b in bones], poses, projections, shape)
+
+    def pullback(self, level, bones, poses, projections, image_gradients):
+        """World force and torque on each of ``bones`` of a scalar of their DRR, from its image
+        gradients (:func:`~pelvicnav.drr.splat.splat_pullback`); ``poses`` (L, 4, 4)."""
+        return splat_pullback([self.models[level][b] for b in bones], poses, projections,
+                              image_gradients)  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)

@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 
-__all__ = ["PointModel", "point_model", "splat"]
+__all__ = ["PointModel", "point_model", "splat", "splat_pullback"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,8 +119,24 @@ def _compile_blocks():  # pragma: no cover - compiled code
     return kernel
 
 
+@functools.lru_cache(maxsize=16)  # a registration renders the same few bone sets thousands of times
+def _stacked(models: tuple[PointModel, ...]) -> tuple[NDArray, NDArray, NDArray]:
+    """The models' samples and masses end to end, and where each model starts (read-only)."""
+    pts = np.concatenate([m.points for m in models])
+    mass = np.concatenate([m.mass for m in models])
+    offsets = np.cumsum([0] + [len(m.points) for m in models]).astype(np.int64)
+    for a in (pts, mass, offsets):
+        a.flags.writeable = False
+    return pts, mass, offsets
+
+
 def _intrinsics(P: NDArray) -> tuple[float, float, float, float]:
-    K = pj.decompose_projection(P).intrinsics
+    return _intrinsics_of(np.ascontiguousarray(P, dtype=np.float64).tobytes())
+
+
+@functools.lru_cache(maxsize=64)  # the same few views are rendered thousands of times
+def _intrinsics_of(P_bytes: bytes) -> tuple[float, float, float, float]:
+    K = pj.decompose_projection(np.frombuffer(P_bytes).reshape(3, 4)).intrinsics
     return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
 
 
@@ -173,9 +189,7 @@ def splat(
     intr = np.array([_intrinsics(P) for P in Ps]).reshape(-1, n_views, 4)
     Ps = Ps.reshape(-1, n_views, 3, 4)
     M = np.einsum("bkij,bljm->bklim", np.broadcast_to(Ps, (T.shape[0], *Ps.shape[1:])), T)
-    pts = np.concatenate([m.points for m in models])
-    mass = np.concatenate([m.mass for m in models])
-    offsets = np.cumsum([0] + [len(m.points) for m in models]).astype(np.int64)
+    pts, mass, offsets = _stacked(tuple(models))
     spacing = np.array([m.spacing for m in models])
     intr = np.ascontiguousarray(np.broadcast_to(intr, (T.shape[0], n_views, 4)))
     out = np.zeros((T.shape[0], n_views, rows, cols), dtype=np.float32)
@@ -184,16 +198,87 @@ def splat(
         return out
     if method != "fast":
         raise ValueError(f"method must be 'fast' or 'tent', got {method!r}")
-    # blur radius per image: projected sample spacing at the first bone's centroid depth, made
-    # ripple-free like the tent kernel, minus the bilinear splat's own spread (variances add)
-    c = models[0].centroid
-    w = np.einsum("bkj,j->bk", M[:, :, 0, 2, :3], c) + M[:, :, 0, 2, 3]
-    s_px = spacing[0] * intr[..., :2] / np.maximum(w, 1e-6)[..., None]
-    r = np.where(s_px < 1.0, s_px * np.ceil(1.0 / np.maximum(s_px, 1e-9)), s_px)
-    radius = np.ascontiguousarray(np.sqrt(np.maximum(r**2 - 1.0, 0.0)))
-    pad = int(np.ceil(radius.max())) + 2
+    radius, pad = _blur_radius(models[0], M, intr)
     _compile_fast()(np.ascontiguousarray(M), pts, mass, offsets, intr, radius, pad, out)
     return out
+
+
+def _blur_radius(first: PointModel, M: NDArray, intr: NDArray) -> tuple[NDArray, int]:
+    """The ``"fast"`` splat's blur half-width per image (B, K, 2) px, and the canvas padding.
+
+    The projected sample spacing at the first bone's centroid depth, made ripple-free like the
+    tent kernel, minus the bilinear splat's own spread (variances add).
+    """
+    c = first.centroid
+    w = np.einsum("bkj,j->bk", M[:, :, 0, 2, :3], c) + M[:, :, 0, 2, 3]
+    s_px = first.spacing * intr[..., :2] / np.maximum(w, 1e-6)[..., None]
+    r = np.where(s_px < 1.0, s_px * np.ceil(1.0 / np.maximum(s_px, 1e-9)), s_px)
+    radius = np.ascontiguousarray(np.sqrt(np.maximum(r**2 - 1.0, 0.0)))
+    return radius, int(np.ceil(radius.max())) + 2
+
+
+_CHUNK = 8192  # samples per parallel task of the adjoint
+
+
+def splat_pullback(
+    models: Sequence[PointModel],
+    poses: ArrayLike,
+    projections: ArrayLike,
+    image_gradients: ArrayLike,
+) -> NDArray[np.float64]:
+    """The gradient of a scalar of ``splat(models, poses, projections)`` (method ``"fast"``) with
+    respect to a spatial twist of each bone, from the scalar's gradient on the images.
+
+    The adjoint of the splat: the image gradient ``G = dS/dI`` is blurred by the same tents and
+    read, with its spatial derivatives, at every projected sample; each sample's pixel-space
+    force is carried back through the projection to world space. Exact for the rendered image
+    (bilinear splat, projection, the ``1/w^2`` and obliquity factors) except for the blur width,
+    which depends on the first bone's depth and is held fixed.
+
+    Parameters
+    ----------
+    models : L PointModel
+    poses : (L, 4, 4) float
+        ``world_from_ct`` of every bone (one candidate).
+    projections : (K, 3, 4) float
+    image_gradients : (K, rows, cols) float
+        ``dS/dI`` for each view's DRR.
+
+    Returns
+    -------
+    (L, 6) float64
+        Per bone ``[F, tau]``: ``dS/dt`` for a world translation ``t`` (1/mm) and ``dS/domega``
+        for a world rotation ``omega`` about the world origin (1/rad): moving the bone by
+        ``X -> X + t + omega x X`` changes ``S`` by ``F . t + tau . omega`` to first order.
+    """
+    T = np.asarray(poses, dtype=np.float64)
+    L = len(models)
+    if T.shape != (L, 4, 4):
+        raise ValueError(f"poses must have shape ({L}, 4, 4), got {T.shape}")
+    G = np.asarray(image_gradients, dtype=np.float64)
+    Ps = np.asarray(projections, dtype=np.float64)
+    if Ps.ndim != 3 or Ps.shape[1:] != (3, 4) or G.ndim != 3 or len(G) != len(Ps):
+        raise ValueError(f"need (K, 3, 4) projections and (K, rows, cols) gradients, got "
+                         f"{Ps.shape} and {G.shape}")  # fmt: skip
+    Ps = np.stack([pj.normalize_projection(P) for P in Ps])
+    intr = np.array([_intrinsics(P) for P in Ps])[None]
+    M = np.einsum("kij,ljm->klim", Ps, T)[None]
+    radius, pad = _blur_radius(models[0], M, intr)
+    pts, mass, _ = _stacked(tuple(models))
+    sizes = [len(m.points) for m in models]
+    # chunks of samples that never straddle two bones, spread over the threads
+    starts = np.concatenate([np.arange(o, o + n, _CHUNK) for o, n in
+                             zip(np.cumsum([0, *sizes[:-1]]), sizes, strict=True)])  # fmt: skip
+    owner = np.repeat(np.arange(L), [int(np.ceil(n / _CHUNK)) for n in sizes])
+    ends = np.minimum(starts + _CHUNK, np.repeat(np.cumsum(sizes), np.bincount(owner, minlength=L)))
+    rows, cols = G.shape[1:]
+    H = np.zeros((len(Ps), rows + 2 * pad, cols + 2 * pad))
+    _compile_adjoint_blur()(np.ascontiguousarray(G), np.ascontiguousarray(radius[0]), pad, H)
+    partial = np.zeros((len(starts), 6))
+    _compile_pullback()(Ps, T, pts, mass, starts.astype(np.int64),
+                        ends.astype(np.int64), owner.astype(np.int64), intr[0], pad, H,
+                        partial)  # fmt: skip
+    return np.stack([partial[owner == l].sum(axis=0) for l in range(L)])
 
 
 @functools.cache  # compile once per process, on first use
@@ -346,5 +431,112 @@ def _compile_fast():  # pragma: no cover - compiled code
                     for j in range(max(-Rv, r_lo - a), min(Rv, r_hi - a) + 1):
                         acc += wv[j + Rv] * tmp[a + j, c + pad]
                     o[r, c] = acc
+
+    return kernel
+
+
+@functools.cache  # compile once per process, on first use
+def _compile_adjoint_blur():  # pragma: no cover - compiled code
+    import numba as nb
+
+    @nb.njit(parallel=True, cache=True)
+    def kernel(G, radius, pad, H):
+        """H[k] = the "fast" splat's tents (transposed: the same, they are symmetric) applied
+        to G[k] placed on the padded canvas; the views in parallel."""
+        K, rows, cols = G.shape
+        for k in nb.prange(K):
+            ru, rv = radius[k, 0], radius[k, 1]
+            Ru, Rv = int(np.floor(ru)), int(np.floor(rv))
+            wu = np.empty(2 * Ru + 1)
+            for j in range(-Ru, Ru + 1):
+                wu[j + Ru] = max(0.0, 1.0 - abs(j) / ru) if ru > 0 else (1.0 if j == 0 else 0.0)
+            wu = wu / wu.sum()
+            wv = np.empty(2 * Rv + 1)
+            for j in range(-Rv, Rv + 1):
+                wv[j + Rv] = max(0.0, 1.0 - abs(j) / rv) if rv > 0 else (1.0 if j == 0 else 0.0)
+            wv = wv / wv.sum()
+            nr, nc = rows + 2 * pad, cols + 2 * pad
+            tmp = np.zeros((nr, cols))  # the vertical pass, image columns only
+            for a in range(nr):
+                for c in range(cols):
+                    acc = 0.0
+                    for j in range(max(-Rv, pad - a), min(Rv, pad + rows - 1 - a) + 1):
+                        acc += wv[j + Rv] * G[k, a + j - pad, c]
+                    tmp[a, c] = acc
+            for a in range(nr):
+                for cc in range(nc):
+                    acc = 0.0
+                    for j in range(max(-Ru, pad - cc), min(Ru, pad + cols - 1 - cc) + 1):
+                        acc += wu[j + Ru] * tmp[a, cc + j - pad]
+                    H[k, a, cc] = acc
+
+    return kernel
+
+
+@functools.cache  # compile once per process, on first use
+def _compile_pullback():  # pragma: no cover - compiled code
+    import numba as nb
+
+    @nb.njit(parallel=True, cache=True, fastmath=True)
+    def kernel(P, T, pts, mass, starts, ends, owner, intr, pad, H, out):
+        """Per chunk c of bone owner[c]: out[c] = sum over its samples and the views of the
+        world force q and X x q."""
+        K = P.shape[0]
+        nr, nc = H.shape[1], H.shape[2]
+        for c in nb.prange(starts.shape[0]):
+            Tl = T[owner[c]]
+            F0 = F1 = F2 = t0 = t1 = t2 = 0.0
+            for i in range(starts[c], ends[c]):
+                x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+                X0 = Tl[0, 0] * x + Tl[0, 1] * y + Tl[0, 2] * z + Tl[0, 3]
+                X1 = Tl[1, 0] * x + Tl[1, 1] * y + Tl[1, 2] * z + Tl[1, 3]
+                X2 = Tl[2, 0] * x + Tl[2, 1] * y + Tl[2, 2] * z + Tl[2, 3]
+                q0 = q1 = q2 = 0.0
+                for k in range(K):
+                    Pk = P[k]
+                    w = Pk[2, 0] * X0 + Pk[2, 1] * X1 + Pk[2, 2] * X2 + Pk[2, 3]
+                    if w <= 1e-6:
+                        continue
+                    iw = 1.0 / w
+                    u = (Pk[0, 0] * X0 + Pk[0, 1] * X1 + Pk[0, 2] * X2 + Pk[0, 3]) * iw
+                    v = (Pk[1, 0] * X0 + Pk[1, 1] * X1 + Pk[1, 2] * X2 + Pk[1, 3]) * iw
+                    up = u + pad
+                    vp = v + pad
+                    if up < 0.0 or vp < 0.0 or up >= nc - 1 or vp >= nr - 1:
+                        continue
+                    fx, fy = intr[k, 0], intr[k, 1]
+                    du = (u - intr[k, 2]) / fx
+                    dv = (v - intr[k, 3]) / fy
+                    D = 1.0 + du * du + dv * dv
+                    value = mass[i] * fx * fy * np.sqrt(D) * iw * iw
+                    c0 = int(up)
+                    r0 = int(vp)
+                    a = up - c0
+                    b = vp - r0
+                    h00, h01 = H[k, r0, c0], H[k, r0, c0 + 1]
+                    h10, h11 = H[k, r0 + 1, c0], H[k, r0 + 1, c0 + 1]
+                    hb = (1 - a) * (1 - b) * h00 + a * (1 - b) * h01 + (1 - a) * b * h10
+                    hb += a * b * h11
+                    gu = value * ((1 - b) * (h01 - h00) + b * (h11 - h10) + hb * du / (fx * D))
+                    gv = value * ((1 - a) * (h10 - h00) + a * (h11 - h01) + hb * dv / (fy * D))
+                    gw = -2.0 * value * hb * iw
+                    # force: d(u, v, w)/dX carried back (u = U / w, v = V / w)
+                    su, sv = gu * iw, gv * iw
+                    sw = gw - su * u - sv * v
+                    q0 += su * Pk[0, 0] + sv * Pk[1, 0] + sw * Pk[2, 0]
+                    q1 += su * Pk[0, 1] + sv * Pk[1, 1] + sw * Pk[2, 1]
+                    q2 += su * Pk[0, 2] + sv * Pk[1, 2] + sw * Pk[2, 2]
+                F0 += q0
+                F1 += q1
+                F2 += q2
+                t0 += X1 * q2 - X2 * q1
+                t1 += X2 * q0 - X0 * q2
+                t2 += X0 * q1 - X1 * q0
+            out[c, 0] = F0
+            out[c, 1] = F1
+            out[c, 2] = F2
+            out[c, 3] = t0
+            out[c, 4] = t1
+            out[c, 5] = t2
 
     return kernel

@@ -26,6 +26,7 @@ __all__ = [
     "GradientNCC",
     "GradientOrientation",
     "gradient_ncc",
+    "gradient_ncc_gradients",
     "gradient_orientation",
     "ncc",
     "sobel_gradients",
@@ -281,6 +282,45 @@ class GradientNCC:
         _compile_gncc()(self._fx, self._fy, flat, out)
         return out.reshape(lead)
 
+    def value_and_gradient(self, moving: ArrayLike) -> tuple[float, NDArray[np.float64]]:
+        """Gradient NCC of one image ``(H, W)`` and its gradient with respect to every pixel
+        (:func:`gradient_ncc_gradients`)."""
+        values, grads = gradient_ncc_gradients([self], np.asarray(moving)[None])
+        return float(values[0]), grads[0]
+
+
+def gradient_ncc_gradients(
+    metrics: list[GradientNCC] | tuple, images: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Gradient NCC of ``images[k]`` against ``metrics[k]``'s fixed image, and its gradient with
+    respect to every pixel; the K images in parallel.
+
+    With ``g = Dx I`` (Sobel), ``A = sum g f`` and ``V = sum (g - mean g)^2``, each component is
+    ``A / sqrt(V)``, whose derivative is ``f / sqrt(V) - A (g - mean g) / V^1.5``, carried back
+    through the Sobel stencil (its exact transpose, edge clamping included).
+
+    Parameters
+    ----------
+    metrics : K GradientNCC
+    images : (K, H, W) float
+
+    Returns
+    -------
+    values : (K,) float64
+    gradients : (K, H, W) float64
+    """
+    imgs = np.ascontiguousarray(images, dtype=np.float64)
+    if imgs.ndim != 3 or len(imgs) != len(metrics):
+        raise ValueError(f"need one (H, W) image per metric ({len(metrics)}), got {imgs.shape}")
+    if any(m.shape != imgs.shape[1:] for m in metrics):
+        raise ValueError(f"images of shape {imgs.shape[1:]} do not match the fixed images")
+    fx = np.stack([m._fx for m in metrics])
+    fy = np.stack([m._fy for m in metrics])
+    grads = np.zeros(imgs.shape)
+    values = np.zeros(len(imgs))
+    _compile_gncc_grad()(fx, fy, imgs, grads, values)
+    return values, grads
+
 
 # The Sobel stencil is written out in both kernels on purpose: a shared jitted helper captured
 # from a closure stops numba caching the kernels (GO then recompiles for 10 s in every process).
@@ -328,5 +368,62 @@ def _compile_gncc():  # pragma: no cover - compiled code
             if vy > 1e-12 * syy and vy > 0.0:
                 total += syf / np.sqrt(vy)
             out[b] = 0.5 * total
+
+    return kernel
+
+
+@functools.cache  # compile once per process, on first use
+def _compile_gncc_grad():  # pragma: no cover - compiled code
+    import numba as nb
+
+    @nb.njit(parallel=True, cache=True)
+    def kernel(fxs, fys, imgs, grads, values):
+        K, H, W = imgs.shape
+        for k in nb.prange(K):
+            img, fx, fy, grad = imgs[k], fxs[k], fys[k], grads[k]
+            gx = np.empty((H, W))
+            gy = np.empty((H, W))
+            for r in range(H):
+                r0 = r - 1 if r > 0 else 0
+                r2 = r + 1 if r < H - 1 else H - 1
+                for c in range(W):
+                    c0 = c - 1 if c > 0 else 0
+                    c2 = c + 1 if c < W - 1 else W - 1
+                    gx[r, c] = (img[r0, c2] - img[r0, c0] + 2.0 * (img[r, c2] - img[r, c0])
+                                + img[r2, c2] - img[r2, c0]) / 8.0  # fmt: skip
+                    gy[r, c] = (img[r2, c0] - img[r0, c0] + 2.0 * (img[r2, c] - img[r0, c])
+                                + img[r2, c2] - img[r0, c2]) / 8.0  # fmt: skip
+            mx, my = gx.mean(), gy.mean()
+            ax, ay = np.sum(gx * fx), np.sum(gy * fy)
+            vx, vy = np.sum((gx - mx) ** 2), np.sum((gy - my) ** 2)
+            value = 0.0
+            sx = sy = cx = cy = 0.0  # d/dg = s f - c (g - mean)
+            if vx > 1e-12 * np.sum(gx * gx) and vx > 0.0:
+                value += 0.5 * ax / np.sqrt(vx)
+                sx, cx = 0.5 / np.sqrt(vx), 0.5 * ax / vx**1.5
+            if vy > 1e-12 * np.sum(gy * gy) and vy > 0.0:
+                value += 0.5 * ay / np.sqrt(vy)
+                sy, cy = 0.5 / np.sqrt(vy), 0.5 * ay / vy**1.5
+            values[k] = value
+            for r in range(H):  # the transpose of the stencil above
+                r0 = r - 1 if r > 0 else 0
+                r2 = r + 1 if r < H - 1 else H - 1
+                for c in range(W):
+                    c0 = c - 1 if c > 0 else 0
+                    c2 = c + 1 if c < W - 1 else W - 1
+                    a = (sx * fx[r, c] - cx * (gx[r, c] - mx)) / 8.0
+                    grad[r0, c2] += a
+                    grad[r0, c0] -= a
+                    grad[r, c2] += 2.0 * a
+                    grad[r, c0] -= 2.0 * a
+                    grad[r2, c2] += a
+                    grad[r2, c0] -= a
+                    b = (sy * fy[r, c] - cy * (gy[r, c] - my)) / 8.0
+                    grad[r2, c0] += b
+                    grad[r0, c0] -= b
+                    grad[r2, c] += 2.0 * b
+                    grad[r0, c] -= 2.0 * b
+                    grad[r2, c2] += b
+                    grad[r0, c2] -= b
 
     return kernel

@@ -89,6 +89,8 @@ class Level:
     similarities : K callables
         ``drrs (B, rows, cols) -> (B,)`` against each view's blurred radiograph.
     shape : (rows, cols)
+    images : K (rows, cols) float64
+        The blurred, binned radiographs the similarities were built from.
     """
 
     index: int
@@ -96,6 +98,7 @@ class Level:
     projections: NDArray[np.float64]
     similarities: tuple
     shape: tuple[int, int]
+    images: tuple = ()
 
     def score(self, drrs: NDArray) -> NDArray[np.float64]:
         """Similarity summed over the views: ``drrs`` (B, K, rows, cols) -> (B,)."""
@@ -104,7 +107,7 @@ class Level:
     def with_geometry(self, projections: Sequence[ArrayLike]) -> Level:
         """This level with the full-resolution ``projections`` (binned here) instead."""
         Ps = np.stack([downsample_projection(P, self.factor) for P in projections])
-        return Level(self.index, self.factor, Ps, self.similarities, self.shape)
+        return Level(self.index, self.factor, Ps, self.similarities, self.shape, self.images)
 
 
 def blurred(image: NDArray, factor: int, resolution_mm: float, points: NDArray, P) -> NDArray:
@@ -133,5 +136,5 @@ def build_levels(views: ViewSet, renderer: Renderer, pyramid: PyramidSettings) -
         res = renderer.resolution_mm(lv)
         imgs = [blurred(img, f, res, pts, P) for img, P in zip(views.images, Ps, strict=True)]
         sims = tuple(_METRICS[metric](i) for i in imgs)
-        levels.append(Level(lv, f, Ps, sims, imgs[0].shape))
+        levels.append(Level(lv, f, Ps, sims, imgs[0].shape, tuple(imgs)))
     return levels

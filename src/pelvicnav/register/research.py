@@ -51,6 +51,10 @@ def _search_from_stage1(
 
 def _repass(problem: Stage2Problem, y: NDArray, r: int, seed: int, out: ResearchOutcome):
     """One more fine-level pass of every bone (sweep order) over the corrected DRRs."""
+    if problem.is_gradient(problem.fine):
+        y, res = problem.refine(problem.order, y, problem.fine)
+        out.runs.append(res)
+        return y
     for j in problem.order:
         res = problem.search(j, y, problem.fine, y[6 * j : 6 * j + 6], sweep=1,
                              seed=run_seed(seed, REPASS, r, j))  # fmt: skip

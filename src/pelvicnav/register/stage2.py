@@ -14,7 +14,7 @@ Each block search is CMA-ES or, where :meth:`Stage2Problem.is_local`, the local 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -24,6 +24,7 @@ from pelvicnav.drr.renderer import Renderer
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.register.cmaes import CMAESResult, minimize_cmaes
+from pelvicnav.register.gradient import GradientProblem, refine_gradient, supports_gradient
 from pelvicnav.register.local import refine_local
 from pelvicnav.register.prior import JointPrior
 from pelvicnav.register.pyramid import Level
@@ -131,6 +132,28 @@ class Stage2Problem:
         s = self.searched
         return s[-1] if s else 0
 
+    def is_gradient(self, level: int) -> bool:
+        """Whether ``level`` is refined by gradient (``mode="gradient"``: every level;
+        ``fine="gradient"``: the finest searched level; with a renderer that has an adjoint)
+        instead of searched."""
+        s2 = self.settings.stage2
+        chosen = s2.mode == "gradient" or (s2.fine == "gradient" and level == self.fine)
+        return chosen and supports_gradient(self.renderer)
+
+    def refine(self, free: list[int], y: NDArray, level: int) -> tuple[NDArray, CMAESResult]:
+        """The ``free`` bones refined jointly by gradient at ``level`` from ``y``; the run's
+        ``f`` is the level's own objective (its metric, as a search's would be)."""
+        s2 = self.settings.stage2
+        gp = GradientProblem(self.renderer, self.levels[level], self.blocks.base,
+                             self.blocks.centres, y, tuple(free))  # fmt: skip
+        box = np.concatenate([self.box(i) for i in free])
+        tol = s2.gradient_tol * (1.0 if level == self.fine else 10.0)
+        res = refine_gradient(gp, bounds=(-box, box), iterations=s2.gradient_iterations, tol=tol)
+        y = gp.full(res.x)
+        i = free[0]
+        f = float(self.objective(i, y, level)(y[None, 6 * i : 6 * i + 6])[0])
+        return y, replace(res, f=f)
+
     def is_local(self, level: int) -> bool:
         """Whether ``level`` searches by local refinement (``mode="local"``: every level;
         ``fine="local"``: the finest searched level) instead of CMA-ES."""
@@ -174,6 +197,9 @@ class Stage2Problem:
         the local refinement where :meth:`is_local`; sigma (the first difference step) is divided
         by ``1 + sweep``."""
         box = self.box(i)
+        if self.is_gradient(level):
+            y, res = self.refine([i], with_block(y, i, x0), level)
+            return replace(res, x=y[6 * i : 6 * i + 6])
         if self.is_local(level):
             return refine_local(self.objective(i, y, level, weight), x0,
                                 step=self.settings.pyramid.sigmas[level] / (1 + sweep),
@@ -199,6 +225,12 @@ def sweeps(
     """Block coordinates over every searched level; returns the parameters and every run."""
     runs = []
     for lv in problem.searched:
+        if problem.is_gradient(lv):  # every bone at once, one run
+            y, res = problem.refine(problem.order, y, lv)
+            runs.append(res)
+            if progress:
+                progress("stage 2", lv + 1, len(problem.levels))
+            continue
         for sweep in range(problem.settings.stage2.sweeps):
             for i in problem.order:
                 res = problem.search(i, y, lv, y[6 * i : 6 * i + 6], sweep=sweep,
