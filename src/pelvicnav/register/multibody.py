@@ -172,9 +172,7 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
     y, runs = search(problem, y, seed, progress)
     count = cfg.research.count(len(views)) if cfg.stage2.mode != "joint" else 0
     again = research(problem, y, views, seed, count if problem.searched else 0)
-    one_run = cfg.stage2.mode == "joint" or problem.is_gradient(problem.fine)
-    n_final = 1 if one_run else len(renderer.bones)
-    result = StageResult("stage 2", runs, time.perf_counter() - t0, n_final, again.runs)
+    result = StageResult("stage 2", runs, time.perf_counter() - t0, problem.final_runs, again.runs)
     return _Stage2Outcome(problem.blocks.as_dict(again.y), again.disagreement, again.warnings,
                           result)  # fmt: skip
 

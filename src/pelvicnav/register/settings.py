@@ -136,6 +136,11 @@ class Stage2Settings:
         Population of each problem (default 30 and 20: the paper's 100 is for its 18-DoF joint
         problem; the 6-DoF block problems converge with fewer candidates per generation).
     max_generations : per level (0 skips the level)
+    attached : "gradient" or "cmaes"
+        With a plan, how the bones it says are not dislocated are fitted at the searched
+        (non-gradient) levels: ``"gradient"`` (default) — each sweep searches the dislocated
+        bone by CMA-ES, then refines every bone at once by gradient; ``"cmaes"`` — each bone
+        searched in turn. The attached bones moved with the pelvis in stage 1.
     gradient_iterations : int
         L-BFGS iterations of a gradient refinement (its tolerance stops it first: 15-30 on
         simulated cases).
@@ -167,6 +172,7 @@ class Stage2Settings:
     range_attached: tuple[float, float] = (8.0, 4.0)
     joint_prior: float = 0.0
     fine: str = "gradient"
+    attached: str = "gradient"
     gradient_iterations: int = 50
     gradient_tol: float = 1e-6
 
@@ -180,6 +186,10 @@ class Stage2Settings:
         if self.mode not in ("joint", "sweep", "local", "gradient"):
             raise ValueError(
                 f"stage-2 mode must be 'joint', 'sweep', 'local' or 'gradient', got {self.mode!r}"
+            )
+        if self.attached not in ("cmaes", "gradient"):
+            raise ValueError(
+                f"stage-2 attached must be 'cmaes' or 'gradient', got {self.attached!r}"
             )
         if self.sweeps < 1:
             raise ValueError(f"stage-2 sweeps must be >= 1, got {self.sweeps}")

@@ -154,6 +154,19 @@ class Stage2Problem:
         f = float(self.objective(i, y, level)(y[None, 6 * i : 6 * i + 6])[0])
         return y, replace(res, f=f)
 
+    @property
+    def attached_by_gradient(self) -> bool:
+        """Sweeps search the plan's dislocated bone only, then refine all by gradient."""
+        return (self.settings.stage2.attached == "gradient" and self.dislocated is not None
+                and supports_gradient(self.renderer))  # fmt: skip
+
+    @property
+    def final_runs(self) -> int:
+        """How many of the last runs produced the estimate (one per bone of the last sweep)."""
+        if self.settings.stage2.mode == "joint" or self.is_gradient(self.fine):
+            return 1
+        return 2 if self.attached_by_gradient else len(self.blocks.bones)
+
     def is_local(self, level: int) -> bool:
         """Whether ``level`` searches by local refinement (``mode="local"``: every level;
         ``fine="local"``: the finest searched level) instead of CMA-ES."""
@@ -222,24 +235,40 @@ ProgressFn = Callable[[str, int, int], None] | None
 def sweeps(
     problem: Stage2Problem, y: NDArray, seed: int, progress: ProgressFn = None
 ) -> tuple[NDArray, list[CMAESResult]]:
-    """Block coordinates over every searched level; returns the parameters and every run."""
+    """Block coordinates over every searched level; returns the parameters and every run.
+
+    At a gradient level every bone is refined at once (one run). Elsewhere each sweep searches
+    the bones in turn; with ``attached="gradient"`` and a plan, only the dislocated bone is
+    searched and then every bone is refined at once by gradient (the attached bones moved with
+    the pelvis in stage 1 and are within a few mm).
+    """
     runs = []
     for lv in problem.searched:
         if problem.is_gradient(lv):  # every bone at once, one run
             y, res = problem.refine(problem.order, y, lv)
             runs.append(res)
-            if progress:
-                progress("stage 2", lv + 1, len(problem.levels))
-            continue
-        for sweep in range(problem.settings.stage2.sweeps):
-            for i in problem.order:
-                res = problem.search(i, y, lv, y[6 * i : 6 * i + 6], sweep=sweep,
-                                     seed=run_seed(seed, SWEEP, lv, sweep, i))  # fmt: skip
-                runs.append(res)
-                y = with_block(y, i, res.x)
+        else:
+            for sweep in range(problem.settings.stage2.sweeps):
+                y = _sweep(problem, y, lv, sweep, seed, runs)
         if progress:
             progress("stage 2", lv + 1, len(problem.levels))
     return y, runs
+
+
+def _sweep(problem: Stage2Problem, y: NDArray, lv: int, sweep: int, seed: int, runs: list):
+    """One sweep at level ``lv``; appends its runs."""
+    searched = problem.order
+    if problem.attached_by_gradient:
+        searched = [problem.blocks.bones.index(problem.dislocated)]
+    for i in searched:
+        res = problem.search(i, y, lv, y[6 * i : 6 * i + 6], sweep=sweep,
+                             seed=run_seed(seed, SWEEP, lv, sweep, i))  # fmt: skip
+        runs.append(res)
+        y = with_block(y, i, res.x)
+    if problem.attached_by_gradient:
+        y, res = problem.refine(problem.order, y, lv)
+        runs.append(res)
+    return y
 
 
 def joint(
