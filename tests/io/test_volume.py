@@ -291,3 +291,30 @@ def test_label_boxes_match_a_direct_search_on_any_strides():
             assert boxes[v] == expected
     assert label_boxes(lab.astype(np.int32) - 1, [-1, 0])[-1] == (slice(0, 30), slice(0, 25),
                                                                   slice(0, 20))  # fmt: skip
+
+
+def test_label_stats_match_numpy_on_any_strides():
+    from pelvicnav.io.volume import label_stats
+
+    rng = np.random.default_rng(4)
+    lab = np.zeros((30, 25, 20), dtype=np.uint8)
+    lab[3:9, 4:20, 2:5] = 1
+    lab[10:28, 1:3, 7:19] = 2
+    hu = rng.integers(-1000, 1500, size=lab.shape).astype(np.int16)
+    pairs = [(lab, hu), (np.asfortranarray(lab), np.asfortranarray(hu)),
+             (lab.transpose(2, 0, 1), hu.transpose(2, 0, 1)),
+             (lab[::-1, :, ::-1], hu[::-1, :, ::-1].astype(np.float32))]  # fmt: skip
+    for view, ct in pairs:
+        stats = label_stats(view, ct, [1, 2, 3])
+        assert stats[3].count == 0 and stats[3].box is None
+        for v in (1, 2):
+            mask = view == v
+            ijk = np.argwhere(mask)
+            assert stats[v].count == mask.sum()
+            np.testing.assert_allclose(stats[v].centroid_ijk, ijk.mean(0), atol=1e-9)
+            assert stats[v].median_hu == np.median(ct[mask])
+            box = tuple(slice(int(a), int(b) + 1) for a, b in zip(ijk.min(0), ijk.max(0),
+                                                                  strict=True))  # fmt: skip
+            assert stats[v].box == box
+    with pytest.raises(ValueError, match="same 3D grid"):
+        label_stats(lab, hu[:-1], [1])

@@ -18,20 +18,24 @@ class Volume:
 
     Attributes
     ----------
-    data : (ni, nj, nk) float32
-        Values per voxel, in any memory order (e.g. linear attenuation in 1/mm for DRRs, HU for CT).
+    data : (ni, nj, nk) float32, or an integer type kept as it is
+        Values per voxel, in any memory order (e.g. linear attenuation in 1/mm for DRRs, HU for
+        CT). A CT stored as integers (int16 HU, as scanners write it) is not copied: a
+        512 x 512 x 400 float32 copy took 0.9 s of ``pelvicnav register``.
     world_from_ijk : (4, 4) float64
         Affine from voxel indices to world (LPS mm). Spacing and orientation derive from it.
     """
 
-    data: NDArray[np.float32]
+    data: NDArray
     world_from_ijk: NDArray[np.float64]
 
     def __post_init__(self) -> None:
-        d = np.asarray(self.data, dtype=np.float32)  # any memory order (NIfTI reads as Fortran)
+        d = np.asarray(self.data)  # any memory order (NIfTI reads as Fortran)
+        if d.dtype.kind not in "iu":
+            d = np.asarray(d, dtype=np.float32)
         if d.ndim != 3 or min(d.shape) < 1:
             raise ValueError(f"volume data must be a non-empty 3D array, got shape {d.shape}")
-        if not np.all(np.isfinite(d)):
+        if d.dtype.kind == "f" and not np.all(np.isfinite(d)):
             raise ValueError("volume data contains NaN or infinity")
         A = np.asarray(self.world_from_ijk, dtype=np.float64)
         if A.shape != (4, 4) or not np.all(np.isfinite(A)):

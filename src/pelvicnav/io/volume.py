@@ -29,10 +29,12 @@ from numpy.typing import ArrayLike, NDArray
 __all__ = [
     "VOLUME_SUFFIXES",
     "DicomSeries",
+    "LabelStats",
     "VolumeFileError",
     "check_ct_hu",
     "dicom_series_in",
     "label_boxes",
+    "label_stats",
     "read_ct",
     "read_labels",
     "read_volume",
@@ -228,6 +230,103 @@ def _compile_boxes():  # pragma: no cover - compiled code
                     hi[n, 0] = max(hi[n, 0], i)
                     hi[n, 1] = max(hi[n, 1], j)
                     hi[n, 2] = max(hi[n, 2], k)
+
+    return kernel
+
+
+@dataclass(frozen=True)
+class LabelStats:
+    """One label's voxels: how many, their bounding box, mean index and median CT number.
+
+    Attributes
+    ----------
+    count : int
+    box : tuple of 3 slices, or None when absent
+    centroid_ijk : (3,) float64
+    median_hu : float
+        From a histogram of the CT numbers rounded to integers and clipped to
+        [``HU_RANGE[0]``, ``HU_RANGE[1]``] (exact for integer CTs).
+    """
+
+    count: int
+    box: tuple[slice, slice, slice] | None
+    centroid_ijk: NDArray[np.float64]
+    median_hu: float
+
+
+HU_RANGE = (-2048, 4095)
+
+
+def label_stats(labels: ArrayLike, hu: ArrayLike, values) -> dict[int, LabelStats]:
+    """:class:`LabelStats` of each label value in ``values``, in one compiled pass over both
+    volumes (any strides and integer or float types; the walk follows the label map's memory).
+
+    On a 512 x 512 x 400 map this replaces per-bone masks, gathers and medians (about 1.4 s).
+    """
+    lab = np.asarray(labels)
+    ct = np.asarray(hu)
+    if lab.ndim != 3 or ct.shape != lab.shape:
+        raise ValueError(f"labels {lab.shape} and CT {ct.shape} must be the same 3D grid")
+    wanted = np.asarray(sorted({int(v) for v in values}), dtype=np.int64)
+    if lab.dtype.kind not in "iub":
+        lab = lab.astype(np.int64)
+    n = len(wanted)
+    lo = np.full((n, 3), np.iinfo(np.int64).max)
+    hi = np.full((n, 3), -1)
+    sums = np.zeros((n, 3))
+    hist = np.zeros((n, HU_RANGE[1] - HU_RANGE[0] + 1), dtype=np.int64)
+    order = np.argsort([-abs(st) for st in lab.strides], kind="stable")  # walk memory in order
+    if n:
+        _compile_stats()(lab.transpose(order), ct.transpose(order), wanted, HU_RANGE[0], lo, hi,
+                         sums, hist)  # fmt: skip
+    lo[:, order], hi[:, order], sums[:, order] = lo.copy(), hi.copy(), sums.copy()
+    out = {}
+    for m, v in enumerate(wanted):
+        count = int(hist[m].sum())
+        if count == 0:
+            out[int(v)] = LabelStats(0, None, np.full(3, np.nan), float("nan"))
+            continue
+        cum = np.cumsum(hist[m])
+        lo_bin = int(np.searchsorted(cum, (count - 1) // 2, side="right"))
+        hi_bin = int(np.searchsorted(cum, count // 2, side="right"))
+        box = tuple(slice(int(lo[m, a]), int(hi[m, a]) + 1) for a in range(3))
+        out[int(v)] = LabelStats(count, box, sums[m] / count,
+                                 HU_RANGE[0] + 0.5 * (lo_bin + hi_bin))  # fmt: skip
+    return out
+
+
+@functools.cache  # compile once per process, on first use
+def _compile_stats():  # pragma: no cover - compiled code
+    import numba as nb
+
+    @nb.njit(cache=True)
+    def kernel(lab, ct, wanted, hu0, lo, hi, sums, hist):
+        first, last = wanted[0], wanted[-1]
+        lut = np.full(last - first + 1, -1, dtype=np.int64)
+        for n in range(wanted.shape[0]):
+            lut[wanted[n] - first] = n
+        nbins = hist.shape[1]
+        ni, nj, nk = lab.shape
+        for i in range(ni):
+            for j in range(nj):
+                for k in range(nk):
+                    v = np.int64(lab[i, j, k]) - first
+                    if v < 0 or v > last - first:
+                        continue
+                    n = lut[v]
+                    if n < 0:
+                        continue
+                    lo[n, 0] = min(lo[n, 0], i)
+                    lo[n, 1] = min(lo[n, 1], j)
+                    lo[n, 2] = min(lo[n, 2], k)
+                    hi[n, 0] = max(hi[n, 0], i)
+                    hi[n, 1] = max(hi[n, 1], j)
+                    hi[n, 2] = max(hi[n, 2], k)
+                    sums[n, 0] += i
+                    sums[n, 1] += j
+                    sums[n, 2] += k
+                    b = int(np.round(np.float64(ct[i, j, k]))) - hu0
+                    hist[n, min(max(b, 0), nbins - 1)] += 1
 
     return kernel
 

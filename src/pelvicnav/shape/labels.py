@@ -116,33 +116,30 @@ def check_bone_labels(
         A bone with too few voxels, a median below :data:`MIN_BONE_MEDIAN_HU`, or the innominates
         not on their sides of the sacrum; naming the file and the likely scheme.
     """
-    from pelvicnav.io.volume import label_boxes
+    from pelvicnav.io.volume import label_stats
 
     ct = np.asarray(hu)
     lab = np.asarray(labels)
     A = np.asarray(world_from_ijk, dtype=np.float64)
     raw = np.asarray(raw_labels if raw_labels is not None else labels)
     voxel_mm3 = abs(np.linalg.det(A[:3, :3]))
-    boxes = label_boxes(lab, [LABELS[b] for b in BONES])  # one pass, not one per bone
+    stats = label_stats(lab, ct, [LABELS[b] for b in BONES])  # one pass over both volumes
     centres = {}
     for bone in BONES:
-        box = boxes[LABELS[bone]]
-        mask = lab[box] == LABELS[bone] if box is not None else np.zeros((0, 0, 0), bool)
-        volume = mask.sum() * voxel_mm3
+        st = stats[LABELS[bone]]
+        volume = st.count * voxel_mm3
         if volume < MIN_BONE_VOLUME_MM3:
             raise ValueError(
                 f"{source}: {bone} (label {LABELS[bone]}) has {volume:.0f} mm^3 of voxels, "
                 f"not a bone (at least {MIN_BONE_VOLUME_MM3:.0f} expected).{_likely_scheme(raw)}"
             )
-        median = float(np.median(ct[box][mask]))
-        if median < MIN_BONE_MEDIAN_HU:
+        if st.median_hu < MIN_BONE_MEDIAN_HU:
             raise ValueError(
-                f"{source}: {bone} (label {LABELS[bone]}) has median {median:.0f} HU, which is "
-                f"soft tissue, not bone (expected above {MIN_BONE_MEDIAN_HU:.0f} HU)."
+                f"{source}: {bone} (label {LABELS[bone]}) has median {st.median_hu:.0f} HU, which "
+                f"is soft tissue, not bone (expected above {MIN_BONE_MEDIAN_HU:.0f} HU)."
                 f"{_likely_scheme(raw)}"
             )
-        ijk = np.argwhere(mask).mean(axis=0) + [b.start for b in box]
-        centres[bone] = (A @ np.r_[ijk, 1.0])[:3]
+        centres[bone] = (A @ np.r_[st.centroid_ijk, 1.0])[:3]
     x = {bone: c[0] for bone, c in centres.items()}
     if not x["left_hip"] > x["sacrum"] > x["right_hip"]:
         raise ValueError(

@@ -181,7 +181,7 @@ def register_files(
     fingerprint = ct_fingerprint(data, affine)
     previous = None if init is None else read_init(init, n_views=len(vs), ct=fingerprint)
     settings = RegistrationSettings.for_dof(dof)
-    volume = Volume(np.asarray(data, dtype=np.float32), affine)
+    volume = Volume(data, affine)  # integer HU as stored, no float copy
     try:  # one set of bone models for registration and overlays
         models = splat_renderer(volume, lab, settings.factors)
     except ValueError as err:
