@@ -318,3 +318,22 @@ def test_label_stats_match_numpy_on_any_strides():
             assert stats[v].box == box
     with pytest.raises(ValueError, match="same 3D grid"):
         label_stats(lab, hu[:-1], [1])
+
+
+def test_gzipped_nifti_1_and_2_read_as_nibabel_reads_them(tmp_path):
+    import nibabel as nib
+
+    rng = np.random.default_rng(5)
+    data = rng.integers(-1000, 2000, size=(7, 6, 5)).astype(np.int16)
+    affine = np.diag([-0.8, -0.8, 1.5, 1.0])
+    for image_class in (nib.Nifti1Image, nib.Nifti2Image):
+        path = tmp_path / f"{image_class.__name__}.nii.gz"
+        nib.save(image_class(data, affine), path)
+        got, A = read_volume(path)
+        expected = nib.load(path)
+        np.testing.assert_array_equal(got, np.asarray(expected.dataobj))
+        assert got.dtype == np.int16
+        np.testing.assert_allclose(A, np.diag([-1, -1, 1, 1.0]) @ expected.affine)
+    (tmp_path / "broken.nii.gz").write_bytes(b"not gzip at all")
+    with pytest.raises(VolumeFileError, match=r"broken.nii.gz: not a readable NIfTI"):
+        read_volume(tmp_path / "broken.nii.gz")

@@ -70,6 +70,8 @@ def to_bone_labels(labels: ArrayLike, scheme: dict[str, tuple[int, ...]]) -> NDA
             lut = np.zeros(hi + 1, dtype=np.uint8)
             for bone, values in scheme.items():
                 lut[[v for v in values if 0 <= v <= hi]] = LABELS[bone]
+            if np.array_equal(lut, np.arange(hi + 1)):  # already ours: no 105 M-voxel copy
+                return lab.astype(np.uint8, copy=False)
             return lut[lab]
     out = np.zeros(lab.shape, dtype=np.uint8)
     for bone, values in scheme.items():
