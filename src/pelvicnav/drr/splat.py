@@ -130,6 +130,18 @@ def _stacked(models: tuple[PointModel, ...]) -> tuple[NDArray, NDArray, NDArray]
     return pts, mass, offsets
 
 
+def _normalized(P: NDArray) -> NDArray[np.float64]:
+    """:func:`~pelvicnav.geometry.projection.normalize_projection`, remembered per matrix."""
+    return _normalized_of(np.ascontiguousarray(P, dtype=np.float64).tobytes())
+
+
+@functools.lru_cache(maxsize=256)
+def _normalized_of(P_bytes: bytes) -> NDArray[np.float64]:
+    P = pj.normalize_projection(np.frombuffer(P_bytes).reshape(3, 4))
+    P.flags.writeable = False
+    return P
+
+
 def _intrinsics(P: NDArray) -> tuple[float, float, float, float]:
     return _intrinsics_of(np.ascontiguousarray(P, dtype=np.float64).tobytes())
 
@@ -185,7 +197,7 @@ def splat(
     if rows < 1 or cols < 1:
         raise ValueError(f"image shape must be positive, got {shape}")
     n_views = Ps.shape[1]
-    Ps = np.stack([pj.normalize_projection(P) for P in Ps.reshape(-1, 3, 4)])
+    Ps = np.stack([_normalized(P) for P in Ps.reshape(-1, 3, 4)])
     intr = np.array([_intrinsics(P) for P in Ps]).reshape(-1, n_views, 4)
     Ps = Ps.reshape(-1, n_views, 3, 4)
     M = np.einsum("bkij,bljm->bklim", np.broadcast_to(Ps, (T.shape[0], *Ps.shape[1:])), T)
@@ -260,7 +272,7 @@ def splat_pullback(
     if Ps.ndim != 3 or Ps.shape[1:] != (3, 4) or G.ndim != 3 or len(G) != len(Ps):
         raise ValueError(f"need (K, 3, 4) projections and (K, rows, cols) gradients, got "
                          f"{Ps.shape} and {G.shape}")  # fmt: skip
-    Ps = np.stack([pj.normalize_projection(P) for P in Ps])
+    Ps = np.stack([_normalized(P) for P in Ps])
     intr = np.array([_intrinsics(P) for P in Ps])[None]
     M = np.einsum("kij,ljm->klim", Ps, T)[None]
     radius, pad = _blur_radius(models[0], M, intr)
@@ -272,7 +284,7 @@ def splat_pullback(
     owner = np.repeat(np.arange(L), [int(np.ceil(n / _CHUNK)) for n in sizes])
     ends = np.minimum(starts + _CHUNK, np.repeat(np.cumsum(sizes), np.bincount(owner, minlength=L)))
     rows, cols = G.shape[1:]
-    H = np.zeros((len(Ps), rows + 2 * pad, cols + 2 * pad))
+    H = np.zeros((len(Ps), rows + 2 * pad, cols + 2 * pad), dtype=np.float32)  # cache-friendly
     _compile_adjoint_blur()(np.ascontiguousarray(G), np.ascontiguousarray(radius[0]), pad, H)
     partial = np.zeros((len(starts), 6))
     _compile_pullback()(Ps, T, pts, mass, starts.astype(np.int64),
@@ -356,7 +368,7 @@ def _compile():  # pragma: no cover - compiled code
 def _compile_fast():  # pragma: no cover - compiled code
     import numba as nb
 
-    @nb.njit(parallel=True, fastmath=True, cache=True)
+    @nb.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
     def kernel(M, pts, mass, offsets, intr, radius, pad, out):
         B, K = M.shape[0], M.shape[1]
         L = offsets.shape[0] - 1
@@ -439,7 +451,7 @@ def _compile_fast():  # pragma: no cover - compiled code
 def _compile_adjoint_blur():  # pragma: no cover - compiled code
     import numba as nb
 
-    @nb.njit(parallel=True, cache=True)
+    @nb.njit(parallel=True, cache=True, error_model="numpy")
     def kernel(G, radius, pad, H):
         """H[k] = the "fast" splat's tents (transposed: the same, they are symmetric) applied
         to G[k] placed on the padded canvas; the views in parallel."""
@@ -477,7 +489,7 @@ def _compile_adjoint_blur():  # pragma: no cover - compiled code
 def _compile_pullback():  # pragma: no cover - compiled code
     import numba as nb
 
-    @nb.njit(parallel=True, cache=True, fastmath=True)
+    @nb.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
     def kernel(P, T, pts, mass, starts, ends, owner, intr, pad, H, out):
         """Per chunk c of bone owner[c]: out[c] = sum over its samples and the views of the
         world force q and X x q."""

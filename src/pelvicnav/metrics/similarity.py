@@ -314,8 +314,7 @@ def gradient_ncc_gradients(
         raise ValueError(f"need one (H, W) image per metric ({len(metrics)}), got {imgs.shape}")
     if any(m.shape != imgs.shape[1:] for m in metrics):
         raise ValueError(f"images of shape {imgs.shape[1:]} do not match the fixed images")
-    fx = np.stack([m._fx for m in metrics])
-    fy = np.stack([m._fy for m in metrics])
+    fx, fy = _fixed_gradients(tuple(metrics))
     grads = np.zeros(imgs.shape)
     values = np.zeros(len(imgs))
     _compile_gncc_grad()(fx, fy, imgs, grads, values)
@@ -372,11 +371,16 @@ def _compile_gncc():  # pragma: no cover - compiled code
     return kernel
 
 
+@functools.lru_cache(maxsize=8)  # a refinement asks thousands of times for the same views
+def _fixed_gradients(metrics: tuple[GradientNCC, ...]) -> tuple[NDArray, NDArray]:
+    return np.stack([m._fx for m in metrics]), np.stack([m._fy for m in metrics])
+
+
 @functools.cache  # compile once per process, on first use
 def _compile_gncc_grad():  # pragma: no cover - compiled code
     import numba as nb
 
-    @nb.njit(parallel=True, cache=True)
+    @nb.njit(parallel=True, cache=True, error_model="numpy")
     def kernel(fxs, fys, imgs, grads, values):
         K, H, W = imgs.shape
         for k in nb.prange(K):
