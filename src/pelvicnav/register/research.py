@@ -40,10 +40,12 @@ def _search_from_stage1(
     """Bone ``i`` from zero parameters over every searched level (re-search ``r``)."""
     weight = problem.settings.research.coarse_rotation_prior * len(problem.levels[0].projections)
     x, runs = np.zeros(6), []
+    by_search = problem.settings.research.fine == "cmaes"
     for lv in problem.searched:
         w = weight if r % 2 == 0 and lv != problem.fine else 0.0
         res = problem.search(i, with_block(y, i, x), lv, x, sweep=0,
-                             seed=run_seed(seed, RESEARCH, r, lv, i), weight=w)  # fmt: skip
+                             seed=run_seed(seed, RESEARCH, r, lv, i), weight=w,
+                             cmaes=by_search and lv == problem.fine)  # fmt: skip
         runs.append(res)
         x = res.x
     return x, runs
@@ -108,7 +110,7 @@ def research(
             elif apart and abs(f_alt - f_now) < rs.ambiguity_score:  # both answers fit
                 out.warnings.append(
                     f"two searches for {bones[i]} from the same start ended {d_mm:.1f} mm / "
-                    f"{d_deg:.1f} deg apart with similarities within {rs.ambiguity_score}: "
-                    "the images do not pin its pose down"
+                    f"{d_deg:.1f} deg apart with similarities {-f_now:.3f} and {-f_alt:.3f} "
+                    f"(within {rs.ambiguity_score}): the images do not pin its pose down"
                 )
     return out

@@ -210,6 +210,12 @@ class ResearchSettings:
         (mm at the centroid, degrees) whose similarities differ by less than ``ambiguity_score``
         flag the registration (the images leave the pose ambiguous). A re-search that ends
         clearly worse is a failed restart, not an ambiguity. Sweep mode only.
+    fine : "cmaes" or "stage2"
+        The re-search's finest level: ``"cmaes"`` (default) searches the bone by CMA-ES on
+        GO whatever stage 2 does there; ``"stage2"`` as stage 2 does (the gradient refinement
+        by default). Gradient NCC and GO can have their fine-level optima in different places
+        when a hip is half out of the views (study seed 31, case 33: the gradient answer 7.6 mm
+        off, GO's near the truth), so the re-search looks with the other metric.
     single_view_flag_mm : float
         With one view, a re-search that ends more than this far from the answer (median distance
         of the bone's samples at the detector) flags the result whatever the scores (this
@@ -235,12 +241,15 @@ class ResearchSettings:
     """
 
     restarts: int | None = None
+    fine: str = "cmaes"
     single_view_flag_mm: float = 4.0
     ambiguity: tuple[float, float] = (2.0, 2.0)
     ambiguity_score: float = 0.03
     coarse_rotation_prior: float = 5e-5
 
     def __post_init__(self) -> None:
+        if self.fine not in ("cmaes", "stage2"):
+            raise ValueError(f"research fine must be 'cmaes' or 'stage2', got {self.fine!r}")
         if self.restarts is not None and self.restarts < 0:
             raise ValueError(f"restarts must be >= 0, got {self.restarts}")
         if not self.coarse_rotation_prior >= 0:

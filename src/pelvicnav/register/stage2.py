@@ -204,16 +204,16 @@ class Stage2Problem:
 
     def search(
         self, i: int, y: NDArray, level: int, x0: NDArray, *, sweep: int, seed: int,
-        weight: float = 0.0,
+        weight: float = 0.0, cmaes: bool = False,
     ) -> CMAESResult:  # fmt: skip
         """One bone's 6 DoF at ``level`` over the fixed DRR of the others (at ``y``): CMA-ES, or
-        the local refinement where :meth:`is_local`; sigma (the first difference step) is divided
-        by ``1 + sweep``."""
+        the gradient or local refinement where :meth:`is_gradient` or :meth:`is_local` (unless
+        ``cmaes``); sigma (the first difference step) is divided by ``1 + sweep``."""
         box = self.box(i)
-        if self.is_gradient(level):
+        if self.is_gradient(level) and not cmaes:
             y, res = self.refine([i], with_block(y, i, x0), level)
             return replace(res, x=y[6 * i : 6 * i + 6])
-        if self.is_local(level):
+        if self.is_local(level) and not cmaes:
             return refine_local(self.objective(i, y, level, weight), x0,
                                 step=self.settings.pyramid.sigmas[level] / (1 + sweep),
                                 iterations=self.settings.stage2.max_generations[level],
