@@ -198,3 +198,11 @@ def test_bad_input(phantom):
         ResearchSettings(restarts=-1)
     with pytest.raises(ValueError, match="one value per pyramid level"):
         RegistrationSettings(stage1=Stage1Settings(max_generations=(25,)))
+    with pytest.raises(ValueError, match="stage-2 fine must be"):
+        Stage2Settings(fine="newton")
+    with pytest.raises(ValueError, match="stage-2 attached must be"):
+        Stage2Settings(attached="local")
+    with pytest.raises(ValueError, match="stage-2 mode must be"):
+        Stage2Settings(mode="lbfgs")
+    with pytest.raises(ValueError, match="research fine must be"):
+        ResearchSettings(fine="gradient")

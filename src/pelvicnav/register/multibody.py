@@ -194,9 +194,10 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
     if ambiguous:
         converged = False
         warnings.extend(ambiguous)
-    if similarity < cfg.min_similarity * len(views):
+    floor = cfg.min_similarity_for(cfg.pyramid.metrics[fine.index])
+    if similarity < floor * len(views):
         converged = False
-        warnings.append(f"final similarity {similarity:.3f} is below {cfg.min_similarity} per view")
+        warnings.append(f"final similarity {similarity:.3f} is below {floor} per view")
     return MultiBodyResult(
         poses=poses,
         projections=views.projections,

@@ -25,6 +25,7 @@ __all__ = [
 ]
 
 METRICS = ("go", "gncc")
+MIN_SIMILARITY = {"go": 0.4, "gncc": 0.05}  # per view, see RegistrationSettings
 
 
 @dataclass(frozen=True)
@@ -226,10 +227,10 @@ class ResearchSettings:
     ambiguity : (mm, deg)
     ambiguity_score : float
         Fine-level GO (summed over the views) within which two answers are equally good.
-        0.03 (was 0.01 with CMA-ES at the fine level): with the gradient refinement, a right
-        hip half out of the views (study seed 7, case 1) ended 17 mm off with its re-search
-        14.5 mm away and 0.011 better, unflagged under 0.01; in that study no good case had
-        a re-search more than 0.3 mm away, so the wider band flags no good case there.
+        Tried 0.03 with the gradient refinement (study seed 31): it flagged all 3 gross
+        registrations of 40 but 4 of its 7 flags were good registrations (two answers 4-10 mm
+        apart within 0.006-0.020: the images do not decide); 0.01 flags 2 of the 3 and the
+        third falls under ``min_similarity``.
     coarse_rotation_prior : float
         At every level but the finest, ``coarse_rotation_prior x K x |r|^2`` is taken off the
         similarity of the bone rotated by ``|r|`` degrees from its stage-1 pose (K views). A bone
@@ -244,7 +245,7 @@ class ResearchSettings:
     fine: str = "cmaes"
     single_view_flag_mm: float = 4.0
     ambiguity: tuple[float, float] = (2.0, 2.0)
-    ambiguity_score: float = 0.03
+    ambiguity_score: float = 0.01
     coarse_rotation_prior: float = 5e-5
 
     def __post_init__(self) -> None:
@@ -271,16 +272,19 @@ class RegistrationSettings:
     Attributes
     ----------
     pyramid, stage1, stage2, research : the blocks
-    min_similarity : float
+    min_similarity : float, optional
         Final similarity (fine-level metric summed over views) below ``min_similarity`` per view
-        is flagged as not converged.
+        is flagged as not converged. Default (None): the fine metric's own, 0.4 for GO and 0.05
+        for gradient NCC. GO 0.4 per view: good two-view registrations scored 0.44-0.63 per view
+        (52 atlas cases, study seeds 7 and 31; 6 real-CT cases 0.47-0.61), a stage-1 failure
+        with every bone 14-36 mm off 0.39 (seed 31, case 38; its re-search agreed with it).
     """
 
     pyramid: PyramidSettings = field(default_factory=PyramidSettings)
     stage1: Stage1Settings = field(default_factory=lambda: Stage1Settings(sigmas=(8.0, 1.0)))
     stage2: Stage2Settings = field(default_factory=Stage2Settings)
     research: ResearchSettings = field(default_factory=ResearchSettings)
-    min_similarity: float = 0.05
+    min_similarity: float | None = None
 
     def __post_init__(self) -> None:
         n = self.pyramid.n_levels
@@ -296,6 +300,12 @@ class RegistrationSettings:
                 raise ValueError(
                     f"{name} needs one value per pyramid level ({n}), got {len(values)}"
                 )
+
+    def min_similarity_for(self, metric: str) -> float:
+        """The per-view floor of the final similarity for the fine ``metric``."""
+        if self.min_similarity is not None:
+            return self.min_similarity
+        return MIN_SIMILARITY[metric]
 
     @property
     def dof(self) -> int:
