@@ -65,7 +65,7 @@ class PointModel:
         object.__setattr__(self, "points", p)
         object.__setattr__(self, "mass", m)
 
-    @property
+    @functools.cached_property  # asked for by every fast splat (its blur width)
     def centroid(self) -> NDArray[np.float64]:
         """Mass-weighted centre (mm, CT frame)."""
         return (self.mass @ self.points) / self.mass.sum()

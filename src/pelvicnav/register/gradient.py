@@ -17,6 +17,7 @@ useful derivative; gradient NCC is smooth. The registration's final similarity a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -114,6 +115,13 @@ class GradientProblem:
         return out.ravel()
 
 
+def _recorded(x: NDArray, *, problem: GradientProblem, history: list) -> tuple[float, NDArray]:
+    """The problem's value and gradient at ``x``, the value appended to ``history``."""
+    f, g = problem.value_and_gradient(x)
+    history.append(f)
+    return f, g
+
+
 def refine_gradient(
     problem: GradientProblem,
     *,
@@ -129,12 +137,7 @@ def refine_gradient(
     from scipy.optimize import minimize
 
     history: list[float] = []
-
-    def fun(y):
-        f, g = problem.value_and_gradient(y)
-        history.append(f)
-        return f, g
-
+    fun = partial(_recorded, problem=problem, history=history)
     res = minimize(fun, problem.start(), jac=True, method="L-BFGS-B",
                    bounds=list(zip(*bounds, strict=True)),
                    options={"maxiter": int(iterations), "ftol": tol, "gtol": 1e-6,
