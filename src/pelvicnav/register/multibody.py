@@ -31,6 +31,7 @@ from pelvicnav.drr.renderer import Renderer
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.views import ViewSet
+from pelvicnav.register.initial import initial_translation
 from pelvicnav.register.prior import joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
@@ -117,6 +118,9 @@ def register(
     init = _check_inputs(views, renderer, cfg, init_poses, dislocated)
     levels = build_levels(views, renderer, cfg.pyramid)
     body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
+    if cfg.stage1.initial_search_mm > 0:  # a global translation first (register/initial.py)
+        init = _initial(levels[0], renderer, body, init, cfg.stage1.initial_search_mm)
+        body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
     s1 = run_stage1(views, levels, renderer, body, cfg, seed, progress)
     if s1.projections is not None:  # 9 DoF: later levels and the result use the refined geometry
         views = views.with_projections(s1.projections)
@@ -129,6 +133,15 @@ def register(
         stages.append(s2.result)
     return _judge(views, levels[-1], renderer, poses, stages, warnings, disagreement, cfg,
                   t_start, body.name)  # fmt: skip
+
+
+def _initial(level: Level, renderer, body, init: dict, max_mm: float) -> dict[str, NDArray]:
+    """Every bone's initial pose moved by the translation that lays the body's DRR on the
+    views (:func:`~pelvicnav.register.initial.initial_translation`)."""
+    poses = np.stack([init[b] for b in body.bones])
+    centre = tf.apply(body.start, body.centre[None])[0]
+    delta = initial_translation(level, renderer, body.bones, poses, centre, max_mm)
+    return {b: delta @ T for b, T in init.items()}
 
 
 def _check_inputs(views, renderer, cfg, init_poses, dislocated) -> dict[str, NDArray]:

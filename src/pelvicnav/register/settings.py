@@ -92,6 +92,9 @@ class Stage1Settings:
         Search box around the start (set-up error up to 20 mm / 5 deg).
     source_range_mm : float
         9 DoF: search box of the source position in detector coordinates.
+    initial_search_mm : float
+        Before stage 1, the body's translation from a 2D correlation of its DRR with every
+        view over shifts up to this many mm (:mod:`pelvicnav.register.initial`); 0 skips it.
     """
 
     dof: int = 6
@@ -101,6 +104,7 @@ class Stage1Settings:
     sigmas: tuple[float, ...] | None = None
     search_range: tuple[float, float] = (40.0, 10.0)
     source_range_mm: float = 80.0
+    initial_search_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if self.dof not in (6, 9):
