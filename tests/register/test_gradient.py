@@ -6,16 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
+from tests.helpers.bodies import blob, views_4x
 
-from pelvicnav.drr.renderer import SplatRenderer
-from pelvicnav.drr.splat import PointModel, splat, splat_pullback
-from pelvicnav.geometry import projection as pj
+from pelvicnav.drr.splat import splat, splat_pullback
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.similarity import GradientNCC, gradient_ncc
 from pelvicnav.register.gradient import GradientProblem, left_jacobian, refine_gradient
-from pelvicnav.register.pyramid import build_levels, downsample_projection
-from pelvicnav.register.settings import PyramidSettings
+from pelvicnav.register.initial import best_shift, initial_translation
 
 
 def test_gradient_ncc_image_gradient_matches_central_differences():
@@ -42,20 +39,10 @@ def test_left_jacobian_is_the_derivative_of_the_rotation():
     np.testing.assert_allclose(w, left_jacobian(r) @ dr, rtol=1e-6, atol=1e-14)
 
 
-def _blob(centre, n, rng, spacing=2.0) -> PointModel:
-    pts = np.asarray(centre) + rng.normal(size=(n, 3)) * [25.0, 18.0, 12.0]
-    return PointModel(pts, rng.uniform(0.2, 1.0, n), spacing)
-
-
-def _views(shape=(128, 128)):
-    return np.stack([downsample_projection(pj.CArm(orbit_deg=a, tilt_deg=t).projection_matrix, 4)
-                     for a, t in ((0, 0), (35, -15))])  # fmt: skip
-
-
 def test_splat_pullback_matches_finite_differences_of_a_linear_scalar():
     rng = np.random.default_rng(1)
-    models = [_blob([0, 0, 0], 4000, rng), _blob([45, 10, 5], 3000, rng)]
-    Ps, shape = _views(), (128, 128)
+    models = [blob([0, 0, 0], 4000, rng), blob([45, 10, 5], 3000, rng)]
+    Ps, shape = views_4x(), (128, 128)
     T = np.stack([tf.from_params([1, 2, 3], [0.05, 0.02, -0.03]),
                   tf.from_params([-2, 0, 1], [0.0, 0.04, 0.01])])  # fmt: skip
     G = np.stack([gaussian_filter(rng.normal(size=shape), 4) for _ in range(2)])
@@ -77,24 +64,6 @@ def test_splat_pullback_matches_finite_differences_of_a_linear_scalar():
         np.testing.assert_allclose(wrench[bone], fd, rtol=0.05, atol=0.02 * np.abs(fd).max())
 
 
-@pytest.fixture(scope="module")
-def two_bodies():
-    """Two point bodies, their DRRs at a known pose as the radiographs, a 2-level pyramid."""
-    rng = np.random.default_rng(2)
-    fine = {"a": _blob([0, 0, 0], 6000, rng, 1.5), "b": _blob([50, 0, 10], 6000, rng, 1.5)}
-    coarse = {k: PointModel(m.points[::4], 4 * m.mass[::4], 3.0) for k, m in fine.items()}
-    renderer = SplatRenderer((coarse, fine))
-    truth = {"a": tf.from_params([2.0, -1.0, 1.5], [0.02, 0.0, 0.01]),
-             "b": tf.from_params([-1.0, 2.0, 0.0], [0.0, -0.03, 0.02])}  # fmt: skip
-    carms = [pj.CArm(orbit_deg=a, tilt_deg=t) for a, t in ((0, 0), (35, -15))]
-    Ps = np.stack([c.projection_matrix for c in carms])
-    imgs = splat([fine["a"], fine["b"]], np.stack([truth["a"], truth["b"]])[None], Ps, (512, 512))
-    views = ViewSet.from_arrays([np.asarray(i, dtype=np.float64) for i in imgs[0]], list(Ps),
-                                [c.pixel_spacing for c in carms])  # fmt: skip
-    levels = build_levels(views, renderer, PyramidSettings(metrics=("gncc", "gncc")))
-    return renderer, levels, truth
-
-
 def test_refinement_recovers_a_known_pose_of_two_bodies(two_bodies):
     renderer, levels, truth = two_bodies
     moves = [tf.from_params([2.0, -1.5, 1.0], [0.0, 0.02, 0.0]),
@@ -114,3 +83,27 @@ def test_refinement_recovers_a_known_pose_of_two_bodies(two_bodies):
         err = np.linalg.norm(tf.apply(final[i], c) - tf.apply(truth[b], c))
         assert err < 0.2, (b, err)
     assert res.converged and res.evaluations < 100
+
+
+def test_best_shift_finds_a_known_shift_of_the_edges():
+    rng = np.random.default_rng(6)
+    base = gaussian_filter(rng.normal(size=(96, 112)), 3)
+    fixed = np.roll(base, (7, -12), axis=(0, 1))  # rows down 7, columns left 12
+    shift, score = best_shift(base, fixed, max_shift=30)
+    np.testing.assert_array_equal(shift, [-12, 7])
+    assert score > 0.6  # the shifted images overlap on about 80% of their area
+    limited, _ = best_shift(base, fixed, max_shift=5)  # the true shift is outside the search
+    assert np.abs(limited).max() <= 5
+
+
+def test_initial_translation_brings_a_far_start_back(two_bodies):
+    renderer, levels, truth = two_bodies
+    bones = renderer.bones
+    for offset in ([90.0, -60.0, 0.0], [0.0, 40.0, 120.0]):  # in plane; mostly along the AP beam
+        away = tf.from_params(offset, [0.0, 0.0, 0.0])
+        poses = np.stack([away @ truth[b] for b in bones])
+        c = renderer.centroid(bones[0])
+        centre = tf.apply(poses[0], c[None])[0]
+        delta = initial_translation(levels[0], renderer, bones, poses, centre, max_mm=200.0)
+        err = tf.apply(delta @ poses[0], c[None]) - tf.apply(truth[bones[0]], c[None])
+        assert np.linalg.norm(err) < 6.0, (offset, err)
