@@ -14,11 +14,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pelvicnav.drr.renderer import Renderer
+from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.metrics.similarity import sobel_gradients
 from pelvicnav.register.pyramid import Level
 
-__all__ = ["best_shift", "initial_translation"]
+__all__ = ["best_shift", "initial_pose", "initial_translation"]
 
 
 def best_shift(moving: NDArray, fixed: NDArray, max_shift: float) -> tuple[NDArray, float]:
@@ -82,20 +83,64 @@ def initial_translation(
     """
     t = np.zeros(3)
     for _ in range(rounds):
-        rows, cols = [], []
-        for k, (img, P) in enumerate(zip(level.images, level.projections, strict=True)):
-            X = centre + t
-            J = _jacobian(P, X)
-            aim = _onto_central_ray(P, X, level.shape)  # world shift putting X on the ray
-            moved = tf.from_params(t + aim, np.zeros(3))[None] @ poses
-            drr = renderer.render(level.index, bones, moved[None], P[None], level.shape)[0, 0]
-            px_per_mm = float(np.linalg.norm(J, axis=1).max())
-            shift, _ = best_shift(drr.astype(np.float64), img, max_mm * px_per_mm)
-            rows.append(J)
-            cols.append(shift + J @ aim)  # the shift from X's own projection
-        step, *_ = np.linalg.lstsq(np.concatenate(rows), np.concatenate(cols), rcond=None)
+        step, _ = _views_shift(level, renderer, bones, poses, centre, t, max_mm)
         t = t + step  # minimum norm: one view leaves depth alone
     return tf.from_params(t, np.zeros(3))
+
+
+def initial_pose(
+    level: Level,
+    renderer: Renderer,
+    bones,
+    poses: NDArray,
+    centre: NDArray,
+    max_mm: float,
+    angles_deg: tuple[NDArray, NDArray, NDArray],
+) -> NDArray[np.float64]:
+    """``world_from_world`` (4, 4): :func:`initial_translation`, then the body turned about its
+    centre by the best of ``angles_deg`` about each axis of the first view in turn (in plane
+    first; the summed best-shift correlation of the views decides), then translated again."""
+    delta = initial_translation(level, renderer, bones, poses, centre, max_mm)
+    R_view = pj.decompose_projection(level.projections[0]).carm_from_world
+    axes = (R_view[2], R_view[0], R_view[1])  # about the beam (in plane), then the detector axes
+    for axis, angles in zip(axes, angles_deg, strict=True):
+        c = tf.apply(delta, centre[None])[0]
+        best, best_score = np.eye(4), -np.inf
+        for a in angles:
+            turn = _about(c, axis, a)
+            moved = turn @ delta @ poses
+            _, score = _views_shift(level, renderer, bones, moved, c, np.zeros(3), max_mm)
+            if score > best_score:
+                best, best_score = turn, score
+        delta = best @ delta
+        c = tf.apply(delta, centre[None])[0]
+        delta = initial_translation(level, renderer, bones, delta @ poses, c, max_mm) @ delta
+    return delta
+
+
+def _about(centre: NDArray, axis: NDArray, deg: float) -> NDArray[np.float64]:
+    """Rotation by ``deg`` about ``axis`` through ``centre`` (4, 4)."""
+    turn = tf.from_params(np.zeros(3), np.deg2rad(deg) * np.asarray(axis))
+    return tf.from_params(centre, np.zeros(3)) @ turn @ tf.from_params(-centre, np.zeros(3))
+
+
+def _views_shift(level, renderer, bones, poses, centre, t, max_mm):
+    """The translation step that lays the body (moved by ``t``) on every view, and the summed
+    correlation of the views' best shifts."""
+    rows, cols, total = [], [], 0.0
+    for img, P in zip(level.images, level.projections, strict=True):
+        X = centre + t
+        J = _jacobian(P, X)
+        aim = _onto_central_ray(P, X, level.shape)  # world shift putting X on the ray
+        moved = tf.from_params(t + aim, np.zeros(3))[None] @ poses
+        drr = renderer.render(level.index, bones, moved[None], P[None], level.shape)[0, 0]
+        px_per_mm = float(np.linalg.norm(J, axis=1).max())
+        shift, score = best_shift(drr.astype(np.float64), img, max_mm * px_per_mm)
+        rows.append(J)
+        cols.append(shift + J @ aim)  # the shift from X's own projection
+        total += score
+    step, *_ = np.linalg.lstsq(np.concatenate(rows), np.concatenate(cols), rcond=None)
+    return step, total
 
 
 def _onto_central_ray(P: NDArray, X: NDArray, shape: tuple[int, int]) -> NDArray[np.float64]:

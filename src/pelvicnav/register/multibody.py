@@ -31,7 +31,7 @@ from pelvicnav.drr.renderer import Renderer
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.views import ViewSet
-from pelvicnav.register.initial import initial_translation
+from pelvicnav.register.initial import initial_pose, initial_translation
 from pelvicnav.register.prior import joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
@@ -118,8 +118,8 @@ def register(
     init = _check_inputs(views, renderer, cfg, init_poses, dislocated)
     levels = build_levels(views, renderer, cfg.pyramid)
     body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
-    if cfg.stage1.initial_search_mm > 0:  # a global translation first (register/initial.py)
-        init = _initial(levels[0], renderer, body, init, cfg.stage1.initial_search_mm)
+    if cfg.stage1.initial_search_mm > 0 and any(cfg.stage1.max_generations):  # not tracking
+        init = _initial(levels[0], renderer, body, init, cfg.stage1)
         body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
     s1 = run_stage1(views, levels, renderer, body, cfg, seed, progress)
     if s1.projections is not None:  # 9 DoF: later levels and the result use the refined geometry
@@ -135,12 +135,25 @@ def register(
                   t_start, body.name)  # fmt: skip
 
 
-def _initial(level: Level, renderer, body, init: dict, max_mm: float) -> dict[str, NDArray]:
-    """Every bone's initial pose moved by the translation that lays the body's DRR on the
-    views (:func:`~pelvicnav.register.initial.initial_translation`)."""
+def _initial(level: Level, renderer, body, init: dict, s1) -> dict[str, NDArray]:
+    """Every bone's initial pose moved by the translation (and turn, where
+    ``s1.initial_turn_deg``) that lays the body's DRR on the views
+    (:mod:`pelvicnav.register.initial`)."""
     poses = np.stack([init[b] for b in body.bones])
     centre = tf.apply(body.start, body.centre[None])[0]
-    delta = initial_translation(level, renderer, body.bones, poses, centre, max_mm)
+    mm = s1.initial_search_mm
+    if max(s1.initial_turn_deg) > 0:
+        angles = tuple(
+            np.arange(-a, a + 1e-9, 10.0)
+            for a in (s1.initial_turn_deg[0], *[s1.initial_turn_deg[1]] * 2)
+        )
+        delta = initial_pose(level, renderer, body.bones, poses, centre, mm, angles)
+    else:
+        delta = initial_translation(level, renderer, body.bones, poses, centre, mm)
+    moved_mm = np.linalg.norm(tf.apply(delta, centre[None])[0] - centre)
+    turned_deg = np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(delta[:3, :3])))
+    if moved_mm < s1.initial_min_mm and turned_deg < s1.initial_min_deg:
+        return init  # within stage 1's own reach: its search decides (see Stage1Settings)
     return {b: delta @ T for b, T in init.items()}
 
 
