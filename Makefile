@@ -37,7 +37,7 @@ bench: $(STAMP)
 study-target-pose: $(STAMP)
 	$(BIN)/pelvicnav study target-pose --out studies-output/target-pose --workers 2
 
-# Every study's --quick version, one after the other (goal: 2 min together; about 13 min now).
+# Every study's --quick version, one after the other (goal: 2 min together; not met: docs/studies.md).
 QUICK := studies-output/quick
 studies-quick: $(STAMP)
 	rm -rf $(QUICK) && mkdir -p $(QUICK)
