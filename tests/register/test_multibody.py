@@ -14,6 +14,7 @@ from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.views import ViewSet
+from pelvicnav.register.initial import about
 from pelvicnav.register.multibody import register_multibody
 from pelvicnav.register.settings import (
     PyramidSettings,
@@ -118,6 +119,42 @@ def test_coarse_rotation_prior_leaves_no_bias_in_a_large_rotation(phantom):
     assert np.linalg.norm(tf.apply(E, c[None]) - c) < 1.0
     with pytest.raises(ValueError, match="coarse_rotation_prior"):
         ResearchSettings(coarse_rotation_prior=-1.0)
+
+
+def test_a_start_turned_beyond_the_stage1_box_is_recentred(phantom):
+    """Stage 1 searches +-10 deg around its start; turned 24 deg out of plane, its first run
+    ends at the box's edge, and the re-centred box reaches the truth (without: it cannot)."""
+    from pelvicnav.register.pyramid import build_levels, splat_renderer
+    from pelvicnav.register.stage1 import run_stage1, stage1_body
+
+    ct, labels = phantom
+    views = _views(ct, labels, dict.fromkeys(BONES, np.eye(4)), [_carm(0, 0), _carm(30, -20)])
+    renderer = splat_renderer(ct, labels, FAST.factors)
+    levels = build_levels(views, renderer, FAST.pyramid)
+    R = pj.decompose_projection(views.projections[0]).carm_from_world
+    turn = about(np.zeros(3), R[0], 24.0)
+    body = stage1_body(renderer, "pelvis", dict.fromkeys(BONES, turn), None)
+    left = {}
+    for recentre in (3, 0):
+        cfg = replace(FAST, stage1=replace(FAST.stage1, recentre=recentre))
+        s1 = run_stage1(views, levels, renderer, body, cfg, seed=2)
+        E = s1.delta @ turn  # identity when stage 1 undid the turn
+        left[recentre] = np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(E[:3, :3])))
+    assert Stage1Settings().recentre == 3
+    assert left[3] < 1.0, left
+    assert left[0] > 10.0, left
+
+
+def test_recentring_keeps_the_pose_of_every_parameter_vector():
+    from pelvicnav.register.stage1 import SixDof
+
+    rng = np.random.default_rng(3)
+    params = SixDof(tf.from_params([5.0, -3.0, 2.0], [0.1, 0.2, -0.1]), np.array([10.0, 0, 5]),
+                    np.array([40.0] * 3 + [10.0] * 3))  # fmt: skip
+    x = rng.uniform(-8, 8, 6)
+    moved = params.recentred(x)
+    assert np.allclose(moved.poses(np.zeros((1, 6)))[0], params.poses(x[None])[0], atol=1e-9)
+    assert np.allclose(moved.box, params.box)
 
 
 def test_a_bone_the_images_cannot_pin_down_is_flagged(phantom):

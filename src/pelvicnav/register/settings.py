@@ -90,6 +90,17 @@ class Stage1Settings:
         seeds and two bones 6 and 17 mm off, unflagged; with 8 both seeds found it.
     search_range : (mm, deg)
         Search box around the start (set-up error up to 20 mm / 5 deg).
+    recentre : int
+        When a run ends at the edge of its box (a pose parameter within 10% of it: the answer
+        lies beyond), the box is re-centred on that answer and the level searched again, up to
+        this many times. With the box alone a start turned 20 deg out of plane ended with the
+        body turned the box's 10 deg and bones 3-6 mm off (capture range +-10 deg).
+    rescue_turn_deg : float
+        A registration that ends flagged (see :mod:`pelvicnav.register.multibody`) tries stage
+        1 again from its start before the first guess and from that start turned by this much
+        either way about the first view's detector axes (out of plane); the best stage-1
+        answer goes on to stage 2 when it beats the first, and the better result is kept.
+        0: no rescue. Flagged registrations only, so the others cost nothing more.
     source_range_mm : float
         9 DoF: search box of the source position in detector coordinates.
     initial_search_mm : float
@@ -117,6 +128,8 @@ class Stage1Settings:
     max_generations: tuple[int, ...] = (25, 0)
     sigmas: tuple[float, ...] | None = None
     search_range: tuple[float, float] = (40.0, 10.0)
+    recentre: int = 3
+    rescue_turn_deg: float = 20.0
     source_range_mm: float = 80.0
     initial_search_mm: float = 200.0
     initial_turn_deg: tuple[float, float] = (60.0, 0.0)
@@ -126,6 +139,8 @@ class Stage1Settings:
     def __post_init__(self) -> None:
         if self.dof not in (6, 9):
             raise ValueError(f"dof must be 6 or 9, got {self.dof}")
+        if self.recentre < 0:
+            raise ValueError(f"recentre must be >= 0, got {self.recentre}")
 
 
 @dataclass(frozen=True)

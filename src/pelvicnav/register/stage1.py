@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -111,6 +111,12 @@ class SixDof:
         """The refined full-resolution geometry: none, the views' own stands."""
         return None
 
+    def recentred(self, x: NDArray) -> SixDof:
+        """The same parameterisation with its zero (and box) moved to ``x``."""
+        moved = pj.six_dof_pose(x[None, :6], center=self.centre_world)[0]
+        return replace(self, start=moved @ self.start,
+                       centre_world=tf.apply(moved, self.centre_world[None])[0])  # fmt: skip
+
 
 @dataclass(frozen=True, eq=False)
 class NineDof:
@@ -146,6 +152,14 @@ class NineDof:
         """The refined full-resolution geometry of the one view."""
         return (pj.normalize_projection(downsample_projection(self._full(x), 1)),)
 
+    def recentred(self, x: NDArray) -> NineDof:
+        """The same parameterisation with its zero (and box) moved to ``x``."""
+        moved = pj.six_dof_pose(x[None, :6], center=self.centre_world)[0]
+        s = np.asarray(self.geometry.source_in_detector) + x[6:]
+        return replace(self, start=moved @ self.start,
+                       centre_world=tf.apply(moved, self.centre_world[None])[0],
+                       geometry=pj.NineDof(tuple(s), self.geometry.world_from_detector))  # fmt: skip
+
 
 def parameterisation(
     body: Body, views: ViewSet, settings: RegistrationSettings
@@ -176,6 +190,27 @@ def _body_objective(
     return -level.score(drrs)
 
 
+def _search(params, x, body, renderer, lv: Level, settings, seed: int, attempt: int):
+    """One CMA-ES run of the body on level ``lv`` from ``x`` within ``params.box``."""
+    s1 = settings.stage1
+    objective = partial(_body_objective, params=params, body=body, renderer=renderer, level=lv)
+    return minimize_cmaes(
+        objective,
+        x,
+        sigma=(s1.sigmas or settings.pyramid.sigmas)[lv.index],
+        population=s1.populations[lv.index],
+        seed=run_seed(seed, STAGE1, lv.index, *([attempt] if attempt else [])),
+        max_generations=s1.max_generations[lv.index],
+        scales=params.scales,
+        bounds=(-params.box, params.box),
+    )
+
+
+def _at_edge(x: NDArray, box: NDArray, fraction: float = 0.9) -> bool:
+    """Whether a pose parameter of ``x`` ended within ``1 - fraction`` of its box's edge."""
+    return bool(np.any(np.abs(x[:6]) >= fraction * box[:6]))
+
+
 @dataclass(frozen=True)
 class Stage1Outcome:
     """Stage 1's answer: how the body moved, the refined geometry (9 DoF) and the runs."""
@@ -203,19 +238,13 @@ def run_stage1(
     for lv in levels:
         if s1.max_generations[lv.index] == 0:
             continue
-        objective = partial(_body_objective, params=params, body=body, renderer=renderer, level=lv)
-        res = minimize_cmaes(
-            objective,
-            x,
-            sigma=(s1.sigmas or settings.pyramid.sigmas)[lv.index],
-            population=s1.populations[lv.index],
-            seed=run_seed(seed, STAGE1, lv.index),
-            max_generations=s1.max_generations[lv.index],
-            scales=params.scales,
-            bounds=(-params.box, params.box),
-        )
-        runs.append(res)
-        x = res.x
+        for attempt in range(1 + s1.recentre):
+            res = _search(params, x, body, renderer, lv, settings, seed, attempt)
+            runs.append(res)
+            x = res.x
+            if not _at_edge(res.x, params.box):
+                break
+            params, x = params.recentred(res.x), np.zeros(params.dim)  # the answer lies beyond
         if progress:
             progress("stage 1", lv.index + 1, len(levels))
     delta = params.poses(x[None])[0] @ tf.invert(body.start)
