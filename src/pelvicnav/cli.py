@@ -421,7 +421,7 @@ def study_capture_range(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],
     atlas: PopulationOption = None,
     quick: Annotated[
-        bool, typer.Option(help="Two offsets per axis, one case each (for CI).")
+        bool, typer.Option(help="x at +-100 mm and rx at +-30 deg, one case each (for CI).")
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the simulated patients.")] = 0,
     workers: WorkersOption = None,

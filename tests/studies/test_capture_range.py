@@ -5,6 +5,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from pelvicnav.studies.capture_range import (
     AXES,
@@ -37,3 +38,17 @@ def test_capture_range_is_the_largest_offset_passed_on_both_sides():
     assert s["x"]["capture"] == 50.0  # -100 failed
     assert s["rz"]["capture"] == 10.0
     assert s["y"]["capture"] == 0.0 and s["y"]["rates"] == {}
+
+
+def test_axes_subset_and_the_quick_preset():
+    pop = SimpleNamespace(n_subjects=1, subject_ids=(7,), source="test",
+                          vertices=np.zeros((1, 3, 4, 3)), faces=())  # fmt: skip
+    quick = CaptureRangeSettings.quick()
+    study = capture_range_study(pop, quick)
+    assert sorted((c["axis"], c["offset"]) for c in study.cases) == [
+        ("rx", -30.0), ("rx", 30.0), ("x", -100.0), ("x", 100.0)]  # fmt: skip
+    rows = [{"axis": c["axis"], "offset": c["offset"], "success": True} for c in study.cases]
+    assert {a: s["capture"] for a, s in summarise_capture(rows, quick).items()} == {
+        "x": 100.0, "rx": 30.0}  # fmt: skip
+    with pytest.raises(ValueError, match="axes"):
+        CaptureRangeSettings(axes=("x", "pitch"))

@@ -37,8 +37,8 @@ from pelvicnav.register.prior import joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
-from pelvicnav.register.settings import RegistrationSettings
 from pelvicnav.register.seeds import RESCUE, run_seed
+from pelvicnav.register.settings import RegistrationSettings
 from pelvicnav.register.stage1 import run_stage1, stage1_body
 from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, sweeps
 

@@ -156,9 +156,9 @@ class NineDof:
         """The same parameterisation with its zero (and box) moved to ``x``."""
         moved = pj.six_dof_pose(x[None, :6], center=self.centre_world)[0]
         s = np.asarray(self.geometry.source_in_detector) + x[6:]
-        return replace(self, start=moved @ self.start,
-                       centre_world=tf.apply(moved, self.centre_world[None])[0],
-                       geometry=pj.NineDof(tuple(s), self.geometry.world_from_detector))  # fmt: skip
+        geometry = pj.NineDof(tuple(s), self.geometry.world_from_detector)
+        centre = tf.apply(moved, self.centre_world[None])[0]
+        return replace(self, start=moved @ self.start, centre_world=centre, geometry=geometry)
 
 
 def parameterisation(

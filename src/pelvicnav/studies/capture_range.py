@@ -43,17 +43,25 @@ class CaptureRangeSettings:
     success_mm: float = 4.0
     success_rate: float = 0.5
     views: tuple[str, ...] = ("ap", "oblique30")
+    axes: tuple[str, ...] = AXES
+
+    def __post_init__(self) -> None:
+        unknown = set(self.axes) - set(AXES)
+        if unknown or not self.axes:
+            raise ValueError(f"capture-range axes must be some of {AXES}, got {self.axes}")
 
     @classmethod
     def quick(cls, seed: int = 0) -> CaptureRangeSettings:
-        return cls(translations=(-50, 50), rotations=(-20, 20), repeats=1, seed=seed)
+        """One translation and one rotation axis, one offset of each sign (4 cases, for CI)."""
+        return cls(translations=(-100, 100), rotations=(-30, 30), repeats=1, seed=seed,
+                   axes=("x", "rx"))  # fmt: skip
 
 
 def capture_range_study(population, settings: CaptureRangeSettings | None = None) -> Study:
     """The runner's study: one case per axis, offset and repeat (repeat r: patient r)."""
     cfg = settings or CaptureRangeSettings()
     cases = []
-    for axis in AXES:
+    for axis in cfg.axes:
         offsets = cfg.rotations if axis.startswith("r") else cfg.translations
         for offset in offsets:
             for r in range(cfg.repeats):
@@ -98,15 +106,18 @@ def run_capture_case(case: dict) -> dict:
     return {"axis": case["axis"], "offset": case["offset"], "repeat": case["repeat"],
             "subject": case["subject"], "worst_error_mm": worst,
             "success": bool(worst < cfg.success_mm), "converged": bool(res.converged),
+            "rescued": any(w.startswith("rescued") for w in res.warnings),
             **{f"{b}_error_mm": e for b, e in errors.items()},
             "seconds": res.seconds}  # fmt: skip
 
 
 _SIMULATED: dict = {}
+_KEEP = 3  # simulated patients a worker keeps (cases cycle through the repeats: 3 by default)
 
 
 def _simulated(case: dict) -> dict:
-    """The simulated patient of a case's repeat, kept while a worker runs that repeat's offsets."""
+    """The simulated patient of a case's repeat, kept for the worker's later cases of that
+    repeat (the last ``_KEEP`` patients; each is ~10-20 s to simulate)."""
     from pelvicnav.studies.registration import (
         RegistrationStudySettings,
         simulate_registration_case,
@@ -116,7 +127,8 @@ def _simulated(case: dict) -> dict:
     views = tuple(case["settings"].views)
     key = (case["seed"], case["subject"], views, hashlib.sha1(V.tobytes()).hexdigest())
     if key not in _SIMULATED:
-        _SIMULATED.clear()
+        while len(_SIMULATED) >= _KEEP:
+            _SIMULATED.pop(next(iter(_SIMULATED)))
         sim_cfg = RegistrationStudySettings(views=views, setup_mm=0.0, setup_deg=0.0)
         _SIMULATED[key] = simulate_registration_case(V, case["faces"], seed=case["seed"],
                                                      settings=sim_cfg)  # fmt: skip
@@ -126,7 +138,7 @@ def _simulated(case: dict) -> dict:
 def summarise_capture(rows: list[dict], settings: CaptureRangeSettings) -> dict:
     """Per axis: success rate per offset and the capture range (largest offset, both signs)."""
     out = {}
-    for axis in AXES:
+    for axis in settings.axes:
         sel = [r for r in rows if r["axis"] == axis]
         rates = {}
         for off in sorted({r["offset"] for r in sel}):

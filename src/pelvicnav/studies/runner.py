@@ -30,7 +30,7 @@ from pathlib import Path
 from pelvicnav.io.atomic import write_text
 from pelvicnav.studies.store import ResultStore
 
-__all__ = ["SCHEDULER_TIMEOUT_S", "Study", "flatten", "run_study"]
+__all__ = ["SCHEDULER_TIMEOUT_S", "Study", "flatten", "local_cluster", "run_study"]
 
 SCHEDULER_TIMEOUT_S = 8
 _WORKER_ENV = {
@@ -77,7 +77,7 @@ def _run_one(run_case, case: dict):
 
 def _client(scheduler: str | None, workers: int | None):
     """A dask client: to ``scheduler``, or to a new LocalCluster of ``workers`` processes."""
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     if scheduler is not None:
         try:
@@ -87,11 +87,17 @@ def _client(scheduler: str | None, workers: int | None):
                 f"cannot reach the dask scheduler at {scheduler} within {SCHEDULER_TIMEOUT_S} s "
                 f"({type(err).__name__}); is it running, and is the address right?"
             ) from None
+    return Client(local_cluster(workers))
+
+
+def local_cluster(workers: int | None = None):
+    """A ``LocalCluster`` as the studies use it: ``workers`` processes (default one per core),
+    one thread each, BLAS, OpenMP and numba limited to one thread per worker."""
+    from distributed import LocalCluster
+
     n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           dashboard_address=None, env=_WORKER_ENV,
-                           silence_logs=40)  # fmt: skip
-    return Client(cluster)
+    return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                        dashboard_address=None, env=_WORKER_ENV, silence_logs=40)  # fmt: skip
 
 
 def run_study(
