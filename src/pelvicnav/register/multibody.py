@@ -125,11 +125,27 @@ def register(
         body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
         guess = _initial(levels[0], renderer, body, init, cfg.stage1)
         starts = [guess, init] if guess is not init else starts
-    s1 = run_stage1(views, levels, renderer, run.body(starts[0]), cfg, seed, progress)
-    result = _finish(run, starts[0], s1)
+    start, s1 = _best_stage1(run, starts)
+    result = _finish(run, start, s1)
     if result.converged or not (cfg.stage1.rescue_turn_deg and any(cfg.stage1.max_generations)):
         return result
     return _rescue(run, starts, s1, result)
+
+
+def _best_stage1(run: _Run, starts: list[dict]):
+    """Stage 1 from the first guess and, when the guess was taken, from the start before it
+    too: a guess can move a body turned out of plane further off (a start turned 30 deg ended
+    50 mm off, and its stage 1 in a wrong optimum that no flag caught), so the start whose
+    stage-1 answer scores better goes on. Returns (start, stage-1 outcome)."""
+    s1 = run_stage1(run.views, run.levels, run.renderer, run.body(starts[0]), run.cfg, run.seed,
+                    run.progress)  # fmt: skip
+    if len(starts) == 1:
+        return starts[0], s1
+    seed = run_seed(run.seed, RESCUE, 0)
+    other = run_stage1(run.views, run.levels, run.renderer, run.body(starts[1]), run.cfg, seed)
+    if other.result.levels[-1].f < s1.result.levels[-1].f:
+        return starts[1], other
+    return starts[0], s1
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,23 +183,23 @@ def _finish(run: _Run, init: dict, s1) -> MultiBodyResult:
 
 
 def _rescue(run: _Run, starts: list[dict], s1, result: MultiBodyResult) -> MultiBodyResult:
-    """A flagged registration tried again from other starts: the start before the first guess
-    (when one was taken) and the start turned by +-``rescue_turn_deg`` about the first view's
-    detector axes. Stage 1 runs from each; the best stage-1 answer, if better than the first
-    one's, goes on to stage 2, and the better-scoring of the two results is returned."""
+    """A flagged registration tried again from the start (before any first guess) turned by
+    +-``rescue_turn_deg`` about the first view's detector axes. Stage 1 runs from each; the
+    best stage-1 answer, if better than ``s1`` (the first attempt's), goes on to stage 2, and
+    the better-scoring of the two results is returned."""
     init = starts[-1]
     body = run.body(init)
     centre = tf.apply(body.start, body.centre[None])[0]
     R = pj.decompose_projection(run.levels[0].projections[0]).carm_from_world
     a = run.cfg.stage1.rescue_turn_deg
     turns = [about(centre, axis, sign * a) for axis in R[:2] for sign in (1, -1)]
-    others = starts[1:] + [{b: T @ P for b, P in init.items()} for T in turns]
     best, best_start = s1, None
-    for k, start in enumerate(others):
-        seed = run_seed(run.seed, RESCUE, k)
-        tried = run_stage1(run.views, run.levels, run.renderer, run.body(start), run.cfg, seed)
+    for k, T in enumerate(turns, start=len(starts) - 1):  # k = 0: the unguessed start's seed
+        turned = {b: T @ P for b, P in init.items()}
+        tried = run_stage1(run.views, run.levels, run.renderer, run.body(turned), run.cfg,
+                           run_seed(run.seed, RESCUE, k))  # fmt: skip
         if tried.result.levels[-1].f < best.result.levels[-1].f:
-            best, best_start = tried, start
+            best, best_start = tried, turned
     if best_start is None:
         return result
     again = _finish(run, best_start, best)
