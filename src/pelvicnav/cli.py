@@ -365,7 +365,7 @@ def study_registration(
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
     force: ForceOption = False,
-    quick: Annotated[bool, typer.Option(help="Two cases (for CI).")] = False,
+    quick: Annotated[bool, typer.Option(help="Two cases, 2 mm CTs (for CI).")] = False,
     real_ct: Annotated[
         int,
         typer.Option(
@@ -383,6 +383,7 @@ def study_registration(
 
     from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.registration import (
+        QUICK_CT_SPACING,
         RegistrationStudySettings,
         run_registration_study,
         summarise,
@@ -397,9 +398,10 @@ def study_registration(
             raise ValueError(f"--real-ct must be >= 0, got {real_ct}")
         cases = 2 if quick else cases
         a = _population(atlas) if not real_ct else None
+        coarse = {"ct_spacing": QUICK_CT_SPACING} if quick else {}
         settings = RegistrationStudySettings.for_dof(dof, n_cases=cases, seed=seed,
                                                      segmentation=segmentation,
-                                                     real_ct=real_ct)  # fmt: skip
+                                                     real_ct=real_ct, **coarse)  # fmt: skip
         if real_ct:
             cases = real_ct * 3
         with _study_progress() as bar:

@@ -44,6 +44,7 @@ class CaptureRangeSettings:
     success_rate: float = 0.5
     views: tuple[str, ...] = ("ap", "oblique30")
     axes: tuple[str, ...] = AXES
+    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
 
     def __post_init__(self) -> None:
         unknown = set(self.axes) - set(AXES)
@@ -53,8 +54,10 @@ class CaptureRangeSettings:
     @classmethod
     def quick(cls, seed: int = 0) -> CaptureRangeSettings:
         """One translation and one rotation axis, one offset of each sign (4 cases, for CI)."""
+        from pelvicnav.studies.registration import QUICK_CT_SPACING
+
         return cls(translations=(-100, 100), rotations=(-30, 30), repeats=1, seed=seed,
-                   axes=("x", "rx"))  # fmt: skip
+                   axes=("x", "rx"), ct_spacing=QUICK_CT_SPACING)  # fmt: skip
 
 
 def capture_range_study(population, settings: CaptureRangeSettings | None = None) -> Study:
@@ -125,11 +128,13 @@ def _simulated(case: dict) -> dict:
 
     V = np.ascontiguousarray(case["vertices"], dtype=np.float64)
     views = tuple(case["settings"].views)
-    key = (case["seed"], case["subject"], views, hashlib.sha1(V.tobytes()).hexdigest())
+    spacing = tuple(case["settings"].ct_spacing)
+    key = (case["seed"], case["subject"], views, spacing, hashlib.sha1(V.tobytes()).hexdigest())
     if key not in _SIMULATED:
         while len(_SIMULATED) >= _KEEP:
             _SIMULATED.pop(next(iter(_SIMULATED)))
-        sim_cfg = RegistrationStudySettings(views=views, setup_mm=0.0, setup_deg=0.0)
+        sim_cfg = RegistrationStudySettings(views=views, setup_mm=0.0, setup_deg=0.0,
+                                            ct_spacing=spacing)  # fmt: skip
         _SIMULATED[key] = simulate_registration_case(V, case["faces"], seed=case["seed"],
                                                      settings=sim_cfg)  # fmt: skip
     return _SIMULATED[key]

@@ -35,10 +35,13 @@ class DoseSettings:
     beads: int = 12
     seed: int = 0
     success_mm: float = 4.0
+    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
 
     @classmethod
     def quick(cls, seed: int = 0) -> DoseSettings:
-        return cls(doses=(50.0, 1.0), repeats=1, seed=seed)
+        from pelvicnav.studies.registration import QUICK_CT_SPACING
+
+        return cls(doses=(50.0, 1.0), repeats=1, seed=seed, ct_spacing=QUICK_CT_SPACING)
 
 
 def dose_study(population, settings: DoseSettings | None = None) -> Study:
@@ -68,7 +71,8 @@ def run_dose_case(case: dict) -> dict:
     )
 
     cfg = case["settings"]
-    sim_cfg = RegistrationStudySettings(dose_ugy=case["dose_ugy"], beads=cfg.beads)
+    sim_cfg = RegistrationStudySettings(dose_ugy=case["dose_ugy"], beads=cfg.beads,
+                                        ct_spacing=tuple(cfg.ct_spacing))  # fmt: skip
     sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
                                      settings=sim_cfg)  # fmt: skip
     res = register_multibody(sim["ct"], sim["labels"], sim["views"], seed=case["seed"],

@@ -44,10 +44,14 @@ class FovSettings:
     min_visible: float = 0.2
     seed: int = 0
     success_mm: float = 4.0
+    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
 
     @classmethod
     def quick(cls, seed: int = 0) -> FovSettings:
-        return cls(sizes_mm=(340.0, 150.0), crops=1, patients=1, seed=seed)
+        from pelvicnav.studies.registration import QUICK_CT_SPACING
+
+        return cls(sizes_mm=(340.0, 150.0), crops=1, patients=1, seed=seed,
+                   ct_spacing=QUICK_CT_SPACING)  # fmt: skip
 
 
 def fov_study(population, settings: FovSettings | None = None) -> Study:
@@ -107,7 +111,8 @@ def run_fov_case(case: dict) -> list[dict]:
     )
 
     cfg = case["settings"]
-    sim_cfg = RegistrationStudySettings.for_dof(9, carm=CLINICAL_CARM)
+    sim_cfg = RegistrationStudySettings.for_dof(9, carm=CLINICAL_CARM,
+                                                ct_spacing=tuple(cfg.ct_spacing))  # fmt: skip
     sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
                                      settings=sim_cfg)  # fmt: skip
     r0, c0, side, vis = _crop_window(sim, case["size_mm"], cfg.min_visible,

@@ -46,10 +46,13 @@ PAPER = {"segmentation_s": "122.0 ± 5.7", "planning_s": "116.2 ± 10.5",
 class RuntimeSettings:
     n_cases: int = 10
     seed: int = 0
+    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
 
     @classmethod
     def quick(cls, seed: int = 0) -> RuntimeSettings:
-        return cls(n_cases=1, seed=seed)
+        from pelvicnav.studies.registration import QUICK_CT_SPACING
+
+        return cls(n_cases=1, seed=seed, ct_spacing=QUICK_CT_SPACING)
 
 
 def runtime_study(population, settings: RuntimeSettings | None = None) -> Study:
@@ -59,7 +62,8 @@ def runtime_study(population, settings: RuntimeSettings | None = None) -> Study:
         s = i % population.n_subjects
         cases.append({"case_id": f"{i:04d}", "index": i, "subject": int(population.subject_ids[s]),
                       "vertices": population.vertices[s], "faces": population.faces,
-                      "seed": cfg.seed * 1000 + i})  # fmt: skip
+                      "seed": cfg.seed * 1000 + i,
+                      "ct_spacing": tuple(cfg.ct_spacing)})  # fmt: skip
     meta = {"study": asdict(cfg), "population": population.source,
             "subjects": [int(x) for x in population.subject_ids]}  # fmt: skip
     return Study("runtime", meta, tuple(cases), run_runtime_case)
@@ -76,7 +80,8 @@ def run_runtime_case(case: dict) -> dict:
     from pelvicnav.workflow.plan import decide_dislocated
 
     sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
-                                     settings=RegistrationStudySettings())  # fmt: skip
+                                     settings=RegistrationStudySettings(
+                                         ct_spacing=case["ct_spacing"]))  # fmt: skip
     model = load_model()
     row: dict = {"subject": case["subject"]}
     t = time.perf_counter()
