@@ -8,6 +8,7 @@ the file and what is wrong, with exit status 2.
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -426,6 +427,9 @@ def study_capture_range(
         bool, typer.Option(help="x at +-100 mm and rx at +-30 deg, one case each (for CI).")
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the simulated patients.")] = 0,
+    axes: Annotated[
+        str | None, typer.Option(help="Comma-separated axes to test (default: x,y,z,rx,ry,rz).")
+    ] = None,
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
     force: ForceOption = False,
@@ -436,8 +440,11 @@ def study_capture_range(
     from pelvicnav.io.atlas import AtlasNotFoundError
     from pelvicnav.studies.capture_range import CaptureRangeSettings, run_capture_range_study
 
-    settings = CaptureRangeSettings.quick(seed) if quick else CaptureRangeSettings(seed=seed)
     try:
+        settings = CaptureRangeSettings.quick(seed) if quick else CaptureRangeSettings(seed=seed)
+        if axes is not None:
+            chosen = tuple(a.strip() for a in axes.split(",") if a.strip())
+            settings = replace(settings, axes=chosen)
         population = _population(atlas)
         with _study_progress() as bar:
             task = bar.add_task("cases", total=None)

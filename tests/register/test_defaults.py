@@ -50,7 +50,7 @@ def test_shipped_defaults_register_simulated_pelvises():
 def test_a_start_turned_30_deg_out_of_plane_is_recovered():
     """The capture-range case at +30 deg about each detector axis of the first view (a patient
     sampled from the packaged model, no set-up error): stage 1 re-centres its +-10 deg box and,
-    as the first guess moves such a start further off, also runs from the unguessed start. Before
+    as the first guess moves such a start further off, also runs from other starts. Before
     both, +30 deg about x ended 46 mm off and unflagged. Measured when written: every bone within
     0.25-0.82 mm, both converged (20-40 s each on 2 shared cores)."""
     from pelvicnav.geometry import projection as pj

@@ -125,27 +125,16 @@ def register(
         body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
         guess = _initial(levels[0], renderer, body, init, cfg.stage1)
         starts = [guess, init] if guess is not init else starts
-    start, s1 = _best_stage1(run, starts)
+    guessed = len(starts) > 1
+    rescue = cfg.stage1.rescue_turn_deg > 0 and any(cfg.stage1.max_generations)
+    if guessed and rescue:  # a start far off: every start the rescue would try, tried now
+        starts += _turned(run, init)
+    seeds = [seed] + [run_seed(seed, RESCUE, k) for k in range(len(starts) - 1)]
+    start, s1 = _best_stage1(run, starts, seeds)
     result = _finish(run, start, s1)
-    if result.converged or not (cfg.stage1.rescue_turn_deg and any(cfg.stage1.max_generations)):
+    if result.converged or guessed or not rescue:
         return result
-    return _rescue(run, starts, s1, result)
-
-
-def _best_stage1(run: _Run, starts: list[dict]):
-    """Stage 1 from the first guess and, when the guess was taken, from the start before it
-    too: a guess can move a body turned out of plane further off (a start turned 30 deg ended
-    50 mm off, and its stage 1 in a wrong optimum that no flag caught), so the start whose
-    stage-1 answer scores better goes on. Returns (start, stage-1 outcome)."""
-    s1 = run_stage1(run.views, run.levels, run.renderer, run.body(starts[0]), run.cfg, run.seed,
-                    run.progress)  # fmt: skip
-    if len(starts) == 1:
-        return starts[0], s1
-    seed = run_seed(run.seed, RESCUE, 0)
-    other = run_stage1(run.views, run.levels, run.renderer, run.body(starts[1]), run.cfg, seed)
-    if other.result.levels[-1].f < s1.result.levels[-1].f:
-        return starts[1], other
-    return starts[0], s1
+    return _rescue(run, init, s1, result)
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,27 +171,48 @@ def _finish(run: _Run, init: dict, s1) -> MultiBodyResult:
                   run.t_start, run.body(init).name)  # fmt: skip
 
 
-def _rescue(run: _Run, starts: list[dict], s1, result: MultiBodyResult) -> MultiBodyResult:
-    """A flagged registration tried again from the start (before any first guess) turned by
-    +-``rescue_turn_deg`` about the first view's detector axes. Stage 1 runs from each; the
-    best stage-1 answer, if better than ``s1`` (the first attempt's), goes on to stage 2, and
-    the better-scoring of the two results is returned."""
-    init = starts[-1]
+def _f(s1) -> float:
+    """The stage-1 objective at its answer (lower is better)."""
+    return s1.result.levels[-1].f
+
+
+def _turned(run: _Run, init: dict) -> list[dict]:
+    """``init`` turned by +-``rescue_turn_deg`` about the first view's detector axes (out of
+    plane) through the stage-1 body's centre: where neither the first guess (in-plane turns
+    only) nor one stage-1 box (+-10 deg) reaches."""
     body = run.body(init)
     centre = tf.apply(body.start, body.centre[None])[0]
     R = pj.decompose_projection(run.levels[0].projections[0]).carm_from_world
     a = run.cfg.stage1.rescue_turn_deg
     turns = [about(centre, axis, sign * a) for axis in R[:2] for sign in (1, -1)]
-    best, best_start = s1, None
-    for k, T in enumerate(turns, start=len(starts) - 1):  # k = 0: the unguessed start's seed
-        turned = {b: T @ P for b, P in init.items()}
-        tried = run_stage1(run.views, run.levels, run.renderer, run.body(turned), run.cfg,
-                           run_seed(run.seed, RESCUE, k))  # fmt: skip
-        if tried.result.levels[-1].f < best.result.levels[-1].f:
-            best, best_start = tried, turned
-    if best_start is None:
+    return [{b: T @ P for b, P in init.items()} for T in turns]
+
+
+def _best_stage1(run: _Run, starts: list[dict], seeds: list[int]):
+    """Stage 1 from each start (with its seed); returns the start and stage-1 outcome whose
+    answer scores best. When the first guess was taken, the starts are the guess, the start
+    before it and that start turned out of plane: a guess can move a body turned out of plane
+    further off (starts turned 30 deg were guessed 50-170 mm off, and stage 1 settled in wrong
+    optima that no flag caught: 46 and 29 mm off, unflagged)."""
+    best = None
+    for k, (start, seed) in enumerate(zip(starts, seeds, strict=True)):
+        s1 = run_stage1(run.views, run.levels, run.renderer, run.body(start), run.cfg, seed,
+                        run.progress if k == 0 else None)  # fmt: skip
+        if best is None or _f(s1) < _f(best[1]):
+            best = (start, s1)
+    return best
+
+
+def _rescue(run: _Run, init: dict, s1, result: MultiBodyResult) -> MultiBodyResult:
+    """A flagged registration (whose first guess was not taken) tried again from its start
+    turned out of plane (:func:`_turned`). The best stage-1 answer, if better than ``s1`` (the
+    first attempt's), goes on to stage 2, and the better-scoring result is returned."""
+    turned = _turned(run, init)
+    seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
+    start, best = _best_stage1(run, turned, seeds)
+    if _f(best) >= _f(s1):
         return result
-    again = _finish(run, best_start, best)
+    again = _finish(run, start, best)
     if again.similarity <= result.similarity:
         return result
     note = (f"rescued: the first attempt was flagged (similarity {result.similarity:.3f}); "

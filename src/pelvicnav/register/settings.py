@@ -96,12 +96,11 @@ class Stage1Settings:
         this many times. With the box alone a start turned 20 deg out of plane ended with the
         body turned the box's 10 deg and bones 3-6 mm off (capture range +-10 deg).
     rescue_turn_deg : float
-        A registration that ends flagged (see :mod:`pelvicnav.register.multibody`) tries stage
-        1 again from its start (before any first guess; stage 1 from there has run already
-        when the guess was taken) turned by this much either way about the first view's
-        detector axes (out of plane); the best stage-1 answer goes on to stage 2 when it
-        beats the first, and the better result is kept.
-        0: no rescue. Flagged registrations only, so the others cost nothing more.
+        Out-of-plane turn of the extra stage-1 starts: the registration's start turned by this
+        much either way about the first view's detector axes. When the first guess is taken
+        they are tried at once with the guess and the unguessed start; otherwise only when the
+        registration ends flagged (see :mod:`pelvicnav.register.multibody`), and the better
+        result is kept. 0: neither.
     source_range_mm : float
         9 DoF: search box of the source position in detector coordinates.
     initial_search_mm : float
@@ -121,8 +120,9 @@ class Stage1Settings:
         20 mm) the guess brought 5 of 8 starts from 12-21 mm to within 1-4 mm of the truth, but
         moved the two whose stage-1 objective prefers a wrong pose 36-64 mm off; used
         everywhere it left 5 registrations of 40 gross (2 unflagged) against 3. When it is
-        taken, stage 1 runs from the unguessed start as well and the better stage-1 answer
-        goes on (a start turned 30 deg out of plane was guessed 50 mm off).
+        taken, stage 1 also runs from the unguessed start and from that start turned out of
+        plane (``rescue_turn_deg``), and the best stage-1 answer goes on (starts turned 30 deg
+        out of plane were guessed 50-170 mm off).
     """
 
     dof: int = 6
