@@ -48,11 +48,12 @@ def test_shipped_defaults_register_simulated_pelvises():
 
 @pytest.mark.slow
 def test_a_start_turned_30_deg_out_of_plane_is_recovered():
-    """The capture-range case at +30 deg about each detector axis of the first view (a patient
-    sampled from the packaged model, no set-up error): stage 1 re-centres its +-10 deg box and,
-    as the first guess moves such a start further off, also runs from other starts. Before
-    both, +30 deg about x ended 46 mm off and unflagged. Measured when written: every bone within
-    0.25-0.82 mm, both converged (20-40 s each on 2 shared cores)."""
+    """The capture-range case at +30 deg about the first view's detector x axis (a patient
+    sampled from the packaged model, no set-up error): the first guess moves such a start
+    further off, so stage 1 also runs from the unguessed start and from it turned out of plane,
+    and re-centres its +-10 deg box. Before both, this start ended 46 mm off, unflagged.
+    Measured when written: every bone within 0.25-0.49 mm, converged (49 s with the simulation on 2
+    cores; +30 deg about y: within 0.82 mm, left out of the suite for time)."""
     from pelvicnav.geometry import projection as pj
     from pelvicnav.register.initial import about
 
@@ -63,12 +64,11 @@ def test_a_start_turned_30_deg_out_of_plane_is_recovered():
     iso = np.mean(list(sim["centroids"].values()), axis=0)  # the study's isocentre
     R = pj.decompose_projection(sim["views"].projections[0]).carm_from_world
     renderer = splat_renderer(sim["ct"], sim["labels"], RegistrationSettings().factors)
-    for axis in (0, 1):
-        start = dict.fromkeys(BONES, about(iso, R[axis], 30.0) @ sim["truth"]["sacrum"])
-        res = register_multibody(sim["ct"], sim["labels"], sim["views"], init_poses=start,
-                                 seed=0, renderer=renderer, dislocated=sim["bone"])  # fmt: skip
-        errors = [float(np.linalg.norm(tf.apply(res.poses[b], sim["centroids"][b][None])
-                                       - tf.apply(sim["truth"][b], sim["centroids"][b][None])))
-                  for b in BONES]  # fmt: skip
-        assert max(errors) < 1.5, (axis, errors, res.warnings)
-        assert res.converged, res.warnings
+    start = dict.fromkeys(BONES, about(iso, R[0], 30.0) @ sim["truth"]["sacrum"])
+    res = register_multibody(sim["ct"], sim["labels"], sim["views"], init_poses=start, seed=0,
+                             renderer=renderer, dislocated=sim["bone"])  # fmt: skip
+    errors = [float(np.linalg.norm(tf.apply(res.poses[b], sim["centroids"][b][None])
+                                   - tf.apply(sim["truth"][b], sim["centroids"][b][None])))
+              for b in BONES]  # fmt: skip
+    assert max(errors) < 1.5, (errors, res.warnings)
+    assert res.converged, res.warnings
