@@ -121,12 +121,12 @@ def register(
     levels = build_levels(views, renderer, cfg.pyramid)
     run = _Run(views, levels, renderer, cfg, seed, progress, dislocated, t_start)
     starts = [init]
-    if cfg.stage1.initial_search_mm > 0 and any(cfg.stage1.max_generations):  # not tracking
-        body = stage1_body(renderer, cfg.stage1.body, init, dislocated)
-        guess = _initial(levels[0], renderer, body, init, cfg.stage1)
+    searching = any(cfg.stage1.max_generations)  # not tracking
+    if cfg.stage1.initial_search_mm > 0 and searching:
+        guess = _initial(levels[0], renderer, run.body(init), init, cfg.stage1)
         starts = [guess, init] if guess is not init else starts
     guessed = len(starts) > 1
-    rescue = cfg.stage1.rescue_turn_deg > 0 and any(cfg.stage1.max_generations)
+    rescue = cfg.stage1.rescue_turn_deg > 0 and searching
     if guessed and rescue:  # a start far off: every start the rescue would try, tried now
         starts += _turned(run, init)
     seeds = [seed] + [run_seed(seed, RESCUE, k) for k in range(len(starts) - 1)]

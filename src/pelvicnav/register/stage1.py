@@ -113,9 +113,7 @@ class SixDof:
 
     def recentred(self, x: NDArray) -> SixDof:
         """The same parameterisation with its zero (and box) moved to ``x``."""
-        moved = pj.six_dof_pose(x[None, :6], center=self.centre_world)[0]
-        return replace(self, start=moved @ self.start,
-                       centre_world=tf.apply(moved, self.centre_world[None])[0])  # fmt: skip
+        return replace(self, **_moved_pose(self.start, self.centre_world, x))
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,11 +152,15 @@ class NineDof:
 
     def recentred(self, x: NDArray) -> NineDof:
         """The same parameterisation with its zero (and box) moved to ``x``."""
-        moved = pj.six_dof_pose(x[None, :6], center=self.centre_world)[0]
         s = np.asarray(self.geometry.source_in_detector) + x[6:]
         geometry = pj.NineDof(tuple(s), self.geometry.world_from_detector)
-        centre = tf.apply(moved, self.centre_world[None])[0]
-        return replace(self, start=moved @ self.start, centre_world=centre, geometry=geometry)
+        return replace(self, **_moved_pose(self.start, self.centre_world, x), geometry=geometry)
+
+
+def _moved_pose(start: NDArray, centre_world: NDArray, x: NDArray) -> dict:
+    """``start`` and ``centre_world`` moved by the pose parameters ``x[:6]`` (about the centre)."""
+    moved = pj.six_dof_pose(x[None, :6], center=centre_world)[0]
+    return {"start": moved @ start, "centre_world": tf.apply(moved, centre_world[None])[0]}
 
 
 def parameterisation(

@@ -44,7 +44,7 @@ class CaptureRangeSettings:
     success_rate: float = 0.5
     views: tuple[str, ...] = ("ap", "oblique30")
     axes: tuple[str, ...] = AXES
-    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
+    ct_spacing: tuple[float, float, float] | None = None  # mm; None: the CT simulator's own
 
     def __post_init__(self) -> None:
         unknown = set(self.axes) - set(AXES)
@@ -128,7 +128,7 @@ def _simulated(case: dict) -> dict:
 
     V = np.ascontiguousarray(case["vertices"], dtype=np.float64)
     views = tuple(case["settings"].views)
-    spacing = tuple(case["settings"].ct_spacing)
+    spacing = case["settings"].ct_spacing
     key = (case["seed"], case["subject"], views, spacing, hashlib.sha1(V.tobytes()).hexdigest())
     if key not in _SIMULATED:
         while len(_SIMULATED) >= _KEEP:

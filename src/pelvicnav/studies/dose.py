@@ -35,7 +35,7 @@ class DoseSettings:
     beads: int = 12
     seed: int = 0
     success_mm: float = 4.0
-    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
+    ct_spacing: tuple[float, float, float] | None = None  # mm; None: the CT simulator's own
 
     @classmethod
     def quick(cls, seed: int = 0) -> DoseSettings:
@@ -72,7 +72,7 @@ def run_dose_case(case: dict) -> dict:
 
     cfg = case["settings"]
     sim_cfg = RegistrationStudySettings(dose_ugy=case["dose_ugy"], beads=cfg.beads,
-                                        ct_spacing=tuple(cfg.ct_spacing))  # fmt: skip
+                                        ct_spacing=cfg.ct_spacing)  # fmt: skip
     sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
                                      settings=sim_cfg)  # fmt: skip
     res = register_multibody(sim["ct"], sim["labels"], sim["views"], seed=case["seed"],

@@ -44,7 +44,7 @@ class FovSettings:
     min_visible: float = 0.2
     seed: int = 0
     success_mm: float = 4.0
-    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
+    ct_spacing: tuple[float, float, float] | None = None  # mm; None: the CT simulator's own
 
     @classmethod
     def quick(cls, seed: int = 0) -> FovSettings:
@@ -112,7 +112,7 @@ def run_fov_case(case: dict) -> list[dict]:
 
     cfg = case["settings"]
     sim_cfg = RegistrationStudySettings.for_dof(9, carm=CLINICAL_CARM,
-                                                ct_spacing=tuple(cfg.ct_spacing))  # fmt: skip
+                                                ct_spacing=cfg.ct_spacing)  # fmt: skip
     sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
                                      settings=sim_cfg)  # fmt: skip
     r0, c0, side, vis = _crop_window(sim, case["size_mm"], cfg.min_visible,

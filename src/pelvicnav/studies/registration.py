@@ -64,7 +64,7 @@ class RegistrationStudySettings:
     carm: tuple[tuple[str, float], ...] = ()
     real_ct: int = 0  # > 0: that many cases from each real CT instead of atlas cases
     real_ct_dir: str = ""
-    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
+    ct_spacing: tuple[float, float, float] | None = None  # mm; None: the CT simulator's own
 
     @classmethod
     def for_dof(cls, dof: int, **kwargs) -> RegistrationStudySettings:
@@ -97,7 +97,8 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
     V = np.asarray(vertices, dtype=np.float64)
     bone = ("left_hip", "right_hip")[int(rng.integers(2))]
     disl = draw_dislocation(V, faces, bone=bone, pattern="open-book", rng=rng)
-    options = CTOptions(spacing=tuple(settings.ct_spacing), beads=settings.beads)
+    spacing = {} if settings.ct_spacing is None else {"spacing": tuple(settings.ct_spacing)}
+    options = CTOptions(beads=settings.beads, **spacing)
     ct = synthesize_ct(V, faces, rng=rng, options=options)
     moved, _ = apply_dislocation(ct, V, faces, disl, rng=rng)
     iso = V.reshape(-1, 3).mean(axis=0)

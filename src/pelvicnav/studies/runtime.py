@@ -46,7 +46,7 @@ PAPER = {"segmentation_s": "122.0 ± 5.7", "planning_s": "116.2 ± 10.5",
 class RuntimeSettings:
     n_cases: int = 10
     seed: int = 0
-    ct_spacing: tuple[float, float, float] = (1.0, 1.0, 2.0)  # mm, of the synthesised CT
+    ct_spacing: tuple[float, float, float] | None = None  # mm; None: the CT simulator's own
 
     @classmethod
     def quick(cls, seed: int = 0) -> RuntimeSettings:
@@ -63,7 +63,7 @@ def runtime_study(population, settings: RuntimeSettings | None = None) -> Study:
         cases.append({"case_id": f"{i:04d}", "index": i, "subject": int(population.subject_ids[s]),
                       "vertices": population.vertices[s], "faces": population.faces,
                       "seed": cfg.seed * 1000 + i,
-                      "ct_spacing": tuple(cfg.ct_spacing)})  # fmt: skip
+                      "ct_spacing": cfg.ct_spacing})  # fmt: skip
     meta = {"study": asdict(cfg), "population": population.source,
             "subjects": [int(x) for x in population.subject_ids]}  # fmt: skip
     return Study("runtime", meta, tuple(cases), run_runtime_case)
