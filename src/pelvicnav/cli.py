@@ -424,7 +424,7 @@ def study_capture_range(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],
     atlas: PopulationOption = None,
     quick: Annotated[
-        bool, typer.Option(help="x at +-100 mm and rx at +-30 deg, one case each (for CI).")
+        bool, typer.Option(help="x at +-20 mm, one case each, 2 mm CTs (for CI).")
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the simulated patients.")] = 0,
     axes: Annotated[
@@ -465,7 +465,9 @@ def study_capture_range(
 def study_dose(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],
     atlas: PopulationOption = None,
-    quick: Annotated[bool, typer.Option(help="Two doses, one patient each (for CI).")] = False,
+    quick: Annotated[
+        bool, typer.Option(help="50 and 5 uGy/frame, one patient, 2 mm CTs (for CI).")
+    ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the simulated patients.")] = 0,
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
@@ -577,7 +579,9 @@ def study_segmentation(
     real_ct: Annotated[
         bool, typer.Option(help="Also the real CTs (PELVICNAV_REAL_CT or shared/data/real-ct).")
     ] = True,
-    quick: Annotated[bool, typer.Option(help="Two subjects, intact, no real CTs (CI).")] = False,
+    quick: Annotated[
+        bool, typer.Option(help="Two subjects, intact, 2 mm CTs, no real CTs (CI).")
+    ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the synthetic CTs.")] = 0,
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,

@@ -243,3 +243,19 @@ def test_bad_input(phantom):
         Stage2Settings(mode="lbfgs")
     with pytest.raises(ValueError, match="research fine must be"):
         ResearchSettings(fine="gradient")
+
+
+def test_the_similarity_floor_scales_with_what_the_bones_cover_of_the_view():
+    """GO's floor is per view of what the DRRs score against themselves: 1 for a view the bones
+    fill, less for one they cover a small part of; gradient NCC keeps one per view."""
+    from pelvicnav.register.multibody import _attainable
+
+    yy, xx = np.mgrid[:64, :64]
+    filled = np.sin(xx / 3.0) + np.cos(yy / 4.0)  # edges everywhere
+    small = np.where((abs(xx - 32) < 6) & (abs(yy - 32) < 6), 1.0, 0.0)  # 12 x 12 of 64 x 64
+    assert _attainable("go", np.stack([filled, filled]), 2) == pytest.approx(2.0, abs=1e-6)
+    part = _attainable("go", small[None], 1)
+    # only the square's rim has gradients: 2 x its share of the view (N_LB is half the pixels)
+    rim = np.mean(np.hypot(*np.gradient(small)) > 0)
+    assert 0.0 < part < 0.5 and part == pytest.approx(2 * rim, rel=0.3)
+    assert _attainable("gncc", small[None], 1) == 1.0

@@ -45,10 +45,13 @@ def test_axes_subset_and_the_quick_preset():
                           vertices=np.zeros((1, 3, 4, 3)), faces=())  # fmt: skip
     quick = CaptureRangeSettings.quick()
     study = capture_range_study(pop, quick)
-    assert sorted((c["axis"], c["offset"]) for c in study.cases) == [
-        ("rx", -30.0), ("rx", 30.0), ("x", -100.0), ("x", 100.0)]  # fmt: skip
+    assert sorted((c["axis"], c["offset"]) for c in study.cases) == [("x", -20.0), ("x", 20.0)]
     rows = [{"axis": c["axis"], "offset": c["offset"], "success": True} for c in study.cases]
-    assert {a: s["capture"] for a, s in summarise_capture(rows, quick).items()} == {
+    assert {a: s["capture"] for a, s in summarise_capture(rows, quick).items()} == {"x": 20.0}
+    wide = CaptureRangeSettings(axes=("x", "rx"), translations=(-100, 100), rotations=(-30, 30))
+    rows = [{"axis": c["axis"], "offset": c["offset"], "success": True}
+            for c in capture_range_study(pop, wide).cases]  # fmt: skip
+    assert {a: s["capture"] for a, s in summarise_capture(rows, wide).items()} == {
         "x": 100.0, "rx": 30.0}  # fmt: skip
     with pytest.raises(ValueError, match="axes"):
         CaptureRangeSettings(axes=("x", "pitch"))

@@ -46,3 +46,31 @@ def test_runtime_summary_has_every_step_with_the_paper_alongside():
     assert [s["step"] for s in summary] == [s.removesuffix("_s") for s in STEPS]
     assert summary[0]["median_s"] == 1.5 and summary[0]["iqr_s"] == 1.5
     assert summary[0]["paper_s"] == "122.0 ± 5.7"
+
+
+def test_the_simulated_patient_fills_the_clinical_field_of_view():
+    """Every ray of the 340 mm detector crosses the simulated CT at the patient's centre plane
+    (with room for the set-up error): no CT end shows up in the radiograph as a hard edge."""
+    from pelvicnav.phantom.ctsynth import CTOptions, synthesize_ct
+    from pelvicnav.phantom.population import load_population
+    from pelvicnav.studies.fov import CLINICAL_MARGIN_MM
+
+    pop = load_population("model", n_subjects=1)
+    V = pop.vertices[0]
+    options = CTOptions(spacing=(4.0, 4.0, 4.0), margin_mm=CLINICAL_MARGIN_MM, femurs=False,
+                        bowel_gas=False)  # fmt: skip
+    ct = synthesize_ct(V, pop.faces, rng=np.random.default_rng(0), options=options)
+    corners = np.array([[0, 0, 0], np.array(ct.hu.shape) - 1], dtype=float)
+    lo, hi = np.sort(ct.hu.world_points(corners), axis=0)
+    carm = pj.CArm(isocenter=tuple(V.reshape(-1, 3).mean(axis=0)), **dict(CLINICAL_CARM))
+    half = (
+        0.5
+        * carm.cols
+        * carm.pixel_spacing[1]
+        * carm.source_to_isocenter
+        / (carm.source_to_detector)
+    )  # the field at the isocentre, mm
+    iso = np.asarray(carm.isocenter)
+    setup = 20.0
+    for axis in (0, 2):  # AP view: left-right and head-foot span the detector
+        assert lo[axis] <= iso[axis] - half - setup and hi[axis] >= iso[axis] + half + setup

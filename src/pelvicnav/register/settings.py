@@ -317,6 +317,10 @@ class RegistrationSettings:
         for gradient NCC. GO 0.4 per view: good two-view registrations scored 0.44-0.63 per view
         (52 atlas cases, study seeds 7 and 31; 6 real-CT cases 0.47-0.61), a stage-1 failure
         with every bone 14-36 mm off 0.39 (seed 31, case 38; its re-search agreed with it).
+        For GO the floor is per view of what the answer's DRRs score against themselves (1 where
+        the bones' edges cover half the view or more, as in every C-arm view above; ~0.8 in the
+        340 mm radiographs of the field-of-view study), so a view the bones fill less of is not
+        held to a score it cannot reach.
     """
 
     pyramid: PyramidSettings = field(default_factory=PyramidSettings)

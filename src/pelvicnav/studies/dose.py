@@ -41,7 +41,7 @@ class DoseSettings:
     def quick(cls, seed: int = 0) -> DoseSettings:
         from pelvicnav.studies.registration import QUICK_CT_SPACING
 
-        return cls(doses=(50.0, 1.0), repeats=1, seed=seed, ct_spacing=QUICK_CT_SPACING)
+        return cls(doses=(50.0, 10.0), repeats=1, seed=seed, ct_spacing=QUICK_CT_SPACING)
 
 
 def dose_study(population, settings: DoseSettings | None = None) -> Study:

@@ -65,6 +65,10 @@ class RegistrationStudySettings:
     real_ct: int = 0  # > 0: that many cases from each real CT instead of atlas cases
     real_ct_dir: str = ""
     ct_spacing: tuple[float, float, float] | None = None  # mm; None: the CT simulator's own
+    # (low, high) along x, y, z, mm; None: the CT simulator's own. The simulated patient must
+    # fill the detector's field: where the field reaches past the CT, the radiograph shows the
+    # CT's end as a hard edge that no patient has, and registration aligns bones to it.
+    ct_margin_mm: tuple[tuple[float, float], ...] | None = None
 
     @classmethod
     def for_dof(cls, dof: int, **kwargs) -> RegistrationStudySettings:
@@ -97,8 +101,10 @@ def simulate_registration_case(vertices, faces, *, seed: int, settings: Registra
     V = np.asarray(vertices, dtype=np.float64)
     bone = ("left_hip", "right_hip")[int(rng.integers(2))]
     disl = draw_dislocation(V, faces, bone=bone, pattern="open-book", rng=rng)
-    spacing = {} if settings.ct_spacing is None else {"spacing": tuple(settings.ct_spacing)}
-    options = CTOptions(beads=settings.beads, **spacing)
+    grid = {} if settings.ct_spacing is None else {"spacing": tuple(settings.ct_spacing)}
+    if settings.ct_margin_mm is not None:
+        grid["margin_mm"] = tuple(tuple(m) for m in settings.ct_margin_mm)
+    options = CTOptions(beads=settings.beads, **grid)
     ct = synthesize_ct(V, faces, rng=rng, options=options)
     moved, _ = apply_dislocation(ct, V, faces, disl, rng=rng)
     iso = V.reshape(-1, 3).mean(axis=0)

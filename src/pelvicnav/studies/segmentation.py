@@ -45,10 +45,15 @@ class SegmentationStudySettings:
     dislocated: bool = True
     real_ct: bool = True
     seed: int = 0
+    ct_spacing: tuple[float, float, float] | None = None  # mm; None: the CT simulator's own
 
     @classmethod
     def quick(cls, seed: int = 0) -> SegmentationStudySettings:
-        return cls(n_subjects=2, dislocated=False, real_ct=False, seed=seed)
+        """Two subjects, intact, 2 mm CTs, no real CTs (for CI)."""
+        from pelvicnav.studies.registration import QUICK_CT_SPACING
+
+        return cls(n_subjects=1, dislocated=False, real_ct=False, seed=seed,
+                   ct_spacing=QUICK_CT_SPACING)  # fmt: skip
 
 
 def segmentation_study(
@@ -71,7 +76,7 @@ def segmentation_study(
         for cond in conditions:
             cases.append({"case_id": f"atlas-{sid:03d}-{cond}", "kind": "atlas", "subject": sid,
                           "condition": cond, "population": source, "seed": cfg.seed,
-                          "meshes": meshes})  # fmt: skip
+                          "meshes": meshes, "ct_spacing": cfg.ct_spacing})  # fmt: skip
     real = Path(real_ct_dir) if real_ct_dir else default_real_ct_dir()
     if cfg.real_ct:
         if real is None or not real.is_dir():
@@ -128,13 +133,15 @@ def run_segmentation_case(case: dict) -> list[dict]:
 
 
 def _atlas_case(case: dict) -> list[dict]:
-    from pelvicnav.phantom.ctsynth import synthesize_ct
+    from pelvicnav.phantom.ctsynth import CTOptions, synthesize_ct
     from pelvicnav.phantom.dislocate import PATTERNS, apply_dislocation, draw_dislocation
     from pelvicnav.shape.asm import segment_ct
 
     V, prior = _leave_one_out(case["population"], case["subject"])
     rng = np.random.default_rng([case["seed"], case["subject"]])
-    ct = synthesize_ct(V, prior.faces, rng=rng)
+    spacing = case.get("ct_spacing")
+    options = CTOptions() if spacing is None else CTOptions(spacing=tuple(spacing))
+    ct = synthesize_ct(V, prior.faces, rng=rng, options=options)
     truth = V
     extra = {}
     if case["condition"] == "dislocated":
