@@ -366,7 +366,7 @@ def study_registration(
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
     force: ForceOption = False,
-    quick: Annotated[bool, typer.Option(help="Two cases, 2 mm CTs (for CI).")] = False,
+    quick: Annotated[bool, typer.Option(help="One case, 1.5 mm CTs (for CI).")] = False,
     real_ct: Annotated[
         int,
         typer.Option(
@@ -397,7 +397,7 @@ def study_registration(
             raise ValueError(f"--cases must be >= 1, got {cases}")
         if real_ct < 0:
             raise ValueError(f"--real-ct must be >= 0, got {real_ct}")
-        cases = 2 if quick else cases
+        cases = 1 if quick else cases
         a = _population(atlas) if not real_ct else None
         coarse = {"ct_spacing": QUICK_CT_SPACING} if quick else {}
         settings = RegistrationStudySettings.for_dof(dof, n_cases=cases, seed=seed,
@@ -424,7 +424,7 @@ def study_capture_range(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],
     atlas: PopulationOption = None,
     quick: Annotated[
-        bool, typer.Option(help="x at +-20 mm, one case each, 2 mm CTs (for CI).")
+        bool, typer.Option(help="x at +-20 mm, one case each, 1.5 mm CTs (for CI).")
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the simulated patients.")] = 0,
     axes: Annotated[
@@ -466,7 +466,7 @@ def study_dose(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],
     atlas: PopulationOption = None,
     quick: Annotated[
-        bool, typer.Option(help="50 and 5 uGy/frame, one patient, 2 mm CTs (for CI).")
+        bool, typer.Option(help="50 and 10 uGy/frame, one patient, 1.5 mm CTs (for CI).")
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the simulated patients.")] = 0,
     workers: WorkersOption = None,
@@ -501,7 +501,9 @@ def study_dose(
 def study_fov(
     out: Annotated[Path, typer.Option(help="Output folder (created).")],
     atlas: PopulationOption = None,
-    quick: Annotated[bool, typer.Option(help="Two sizes, one crop each (for CI).")] = False,
+    quick: Annotated[
+        bool, typer.Option(help="340 and 200 mm, one crop each, 1.5 mm CTs (for CI).")
+    ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the patients and crops.")] = 0,
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
@@ -580,7 +582,7 @@ def study_segmentation(
         bool, typer.Option(help="Also the real CTs (PELVICNAV_REAL_CT or shared/data/real-ct).")
     ] = True,
     quick: Annotated[
-        bool, typer.Option(help="Two subjects, intact, 2 mm CTs, no real CTs (CI).")
+        bool, typer.Option(help="One subject, intact, 1.5 mm CT, no real CTs (CI).")
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the synthetic CTs.")] = 0,
     workers: WorkersOption = None,

@@ -153,7 +153,10 @@ def simulate_radiograph(
         Seeded generator for the noise.
     detector : DetectorModel, optional
     step_mm : float, optional
-        Ray sampling step (default half the smallest voxel spacing).
+        Ray sampling step (default the smallest voxel spacing). On a 1 x 1 x 2 mm patient CT, AP
+        view, the line integrals at 1 mm steps differ from those at 0.25 mm by at most 0.0013
+        (99th percentile 0.0005; at 0.5 mm 0.0004), below the quantum noise of every pixel at
+        50 uGy/frame (>= 0.003 before the detector blur), in 0.67 s instead of 1.58 s.
 
     Raises
     ------
@@ -168,9 +171,10 @@ def simulate_radiograph(
     n0 = quanta_per_pixel(dose_ugy, carm, det)
     _check_volume_in_view(ct_hu, carm)
     mu = Volume(mu_from_hu(ct_hu.data), ct_hu.world_from_ijk)
+    step = float(np.min(ct_hu.spacing)) if step_mm is None else step_mm
     p = render(
         [mu], np.eye(4)[None, None], carm.projection_matrix[None], (carm.rows, carm.cols),
-        step_mm=step_mm,
+        step_mm=step,
     )[0, 0].astype(np.float64)  # fmt: skip
     counts = rng.poisson(n0 * np.exp(-p)).astype(np.float64)
     if det.blur_sigma_px > 0:

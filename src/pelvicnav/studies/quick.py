@@ -3,7 +3,7 @@
 ``python -m pelvicnav.studies.quick OUT`` (``make studies-quick``, run by CI) starts one
 ``LocalCluster`` and launches every ``pelvicnav study NAME --out OUT/NAME --quick --scheduler
 ADDRESS`` as its own command at the same time (the runtime study, which times steps in its own
-process, without a scheduler). The cluster's workers take the cases of every study as they come,
+process, without a scheduler, on one thread). The cluster's workers take the cases of every study as they come,
 so neither core waits for a study's last case; the workers load the compiled kernels once. Each
 command's output goes to ``OUT/NAME.log``; ``OUT/timings.md`` lists the seconds each command ran
 (concurrently) and the total.
@@ -11,6 +11,7 @@ command's output goes to ``OUT/NAME.log``; ``OUT/timings.md`` lists the seconds 
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -25,6 +26,8 @@ __all__ = ["QUICK_STUDIES", "run_quick"]
 QUICK_STUDIES = ("runtime", "segmentation", "capture-range", "registration", "dose", "fov",
                  "target-pose")  # fmt: skip
 _IN_PROCESS = ("runtime",)  # no --scheduler option: it times each step where it runs
+# ... on one core here, as the workers do: beside them, more threads would only take turns
+_ONE_CORE = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 GOAL_S = 120.0  # issue 16: every quick study together within two minutes on two cores
 
 
@@ -54,7 +57,9 @@ def run_quick(out: str | Path, *, workers: int | None = None,
         for study in studies:
             fh = open(out / f"{study}.log", "w")  # noqa: SIM115 (closed when it ends)
             cmd = _command(study, out, cluster.scheduler_address)
-            running[study] = (subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT), fh)
+            env = {**os.environ, **_ONE_CORE} if study in _IN_PROCESS else None
+            running[study] = (subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env),
+                              fh)  # fmt: skip
         failed = _wait(running, seconds, started)
     if failed:
         tails = [

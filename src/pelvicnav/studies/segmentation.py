@@ -49,7 +49,7 @@ class SegmentationStudySettings:
 
     @classmethod
     def quick(cls, seed: int = 0) -> SegmentationStudySettings:
-        """Two subjects, intact, 2 mm CTs, no real CTs (for CI)."""
+        """One subject, intact, the quick CT spacing, no real CTs (for CI)."""
         from pelvicnav.studies.registration import QUICK_CT_SPACING
 
         return cls(n_subjects=1, dislocated=False, real_ct=False, seed=seed,
