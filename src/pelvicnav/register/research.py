@@ -84,33 +84,53 @@ def research(
     """``count`` re-searches of the dislocated bone (of every bone without a plan) from ``y``.
 
     ``views`` carries the final geometry (a 9-DoF stage 1's refined ``P``) for the disagreement.
+    With two or more views, a re-search that ends more than ``retry_mm`` away and loses earns one
+    more (see :class:`~pelvicnav.register.settings.ResearchSettings`).
     """
     out = ResearchOutcome(y)
     bones = problem.blocks.bones
     check = [bones.index(problem.dislocated)] if problem.dislocated else range(len(bones))
-    rs = problem.settings.research
-    for r in range(count):
-        for i in check:
-            x_alt, runs = _search_from_stage1(problem, i, out.y, r, seed)
-            out.runs.extend(runs)
-            f_now, d_mm, d_deg = _compare(problem, i, out.y, x_alt, views)
-            out.disagreement[bones[i]] = max(out.disagreement.get(bones[i], 0.0), d_mm)
-            apart = d_mm > rs.ambiguity[0] or d_deg > rs.ambiguity[1]
-            f_alt = runs[-1].f
-            if f_alt < f_now:
-                out.y = with_block(out.y, i, x_alt)
-                if apart:  # another basin: the other bones were fitted over a wrong DRR
-                    out.y = _repass(problem, out.y, r, seed, out)
-            if len(views) == 1:  # judged where the bone projects, whatever the scores
-                if d_mm > rs.single_view_flag_mm:
-                    out.warnings.append(
-                        f"the re-search of {bones[i]} ended {d_mm:.1f} mm away at the detector: "
-                        "with one view its pose is not determined"
-                    )
-            elif apart and abs(f_alt - f_now) < rs.ambiguity_score:  # both answers fit
-                out.warnings.append(
-                    f"two searches for {bones[i]} from the same start ended {d_mm:.1f} mm / "
-                    f"{d_deg:.1f} deg apart with similarities {-f_now:.3f} and {-f_alt:.3f} "
-                    f"(within {rs.ambiguity_score}): the images do not pin its pose down"
-                )
+    for i in check:
+        far, r = 0, 0
+        while r < count + min(far, 1):
+            if _one_research(problem, i, r, seed, views, out) and len(views) > 1:
+                far += 1
+            r += 1
+        if far > 1:  # the answer's basin found by one search only, missed by two others
+            out.warnings.append(
+                f"two re-searches of {bones[i]} ended more than "
+                f"{problem.settings.research.retry_mm:g} mm away and scored worse: the answer "
+                "was found once only"
+            )
     return out
+
+
+def _one_research(problem: Stage2Problem, i: int, r: int, seed: int, views: ViewSet,
+                  out: ResearchOutcome) -> bool:  # fmt: skip
+    """Re-search ``r`` of bone ``i``: the better answer into ``out``; True when it lost from
+    more than ``retry_mm`` away."""
+    rs = problem.settings.research
+    bone = problem.blocks.bones[i]
+    x_alt, runs = _search_from_stage1(problem, i, out.y, r, seed)
+    out.runs.extend(runs)
+    f_now, d_mm, d_deg = _compare(problem, i, out.y, x_alt, views)
+    out.disagreement[bone] = max(out.disagreement.get(bone, 0.0), d_mm)
+    apart = d_mm > rs.ambiguity[0] or d_deg > rs.ambiguity[1]
+    f_alt = runs[-1].f
+    if f_alt < f_now:
+        out.y = with_block(out.y, i, x_alt)
+        if apart:  # another basin: the other bones were fitted over a wrong DRR
+            out.y = _repass(problem, out.y, r, seed, out)
+    if len(views) == 1:  # judged where the bone projects, whatever the scores
+        if d_mm > rs.single_view_flag_mm:
+            out.warnings.append(
+                f"the re-search of {bone} ended {d_mm:.1f} mm away at the detector: "
+                "with one view its pose is not determined"
+            )
+    elif apart and abs(f_alt - f_now) < rs.ambiguity_score:  # both answers fit
+        out.warnings.append(
+            f"two searches for {bone} from the same start ended {d_mm:.1f} mm / "
+            f"{d_deg:.1f} deg apart with similarities {-f_now:.3f} and {-f_alt:.3f} "
+            f"(within {rs.ambiguity_score}): the images do not pin its pose down"
+        )
+    return f_alt >= f_now and d_mm > rs.retry_mm
