@@ -108,3 +108,26 @@ def test_not_vtk(tmp_path):
 def test_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError):
         read_polydata(tmp_path / "nope.vtk")
+
+
+def test_meshes_sharing_triangles_read_their_own_points_and_independent_triangles(tmp_path):
+    """Corresponded meshes (the atlas) reuse the parsed triangles of an identical POLYGONS tail;
+    each read still has its own points and its own triangle array, and a mesh whose triangles
+    differ, or index points it lacks, is read (or refused) on its own."""
+    rng = np.random.default_rng(1)
+    tris = rng.integers(0, 40, size=(60, 3))
+    meshes = [rng.normal(size=(40, 3)) for _ in range(3)]
+    for k, pts in enumerate(meshes):
+        write_polydata(tmp_path / f"m{k}.vtk", pts, tris)
+    read = [read_polydata(tmp_path / f"m{k}.vtk") for k in range(3)]
+    for (p, t), pts in zip(read, meshes, strict=True):
+        np.testing.assert_array_equal(p, pts)
+        np.testing.assert_array_equal(t, tris)
+    read[0][1][0] = (9, 9, 9)  # a caller's change stays its own
+    np.testing.assert_array_equal(read_polydata(tmp_path / "m1.vtk")[1], tris)
+    other = tris[::-1].copy()
+    write_polydata(tmp_path / "other.vtk", meshes[0], other)
+    np.testing.assert_array_equal(read_polydata(tmp_path / "other.vtk")[1], other)
+    write_polydata(tmp_path / "few.vtk", meshes[0][:10], tris)  # same triangles, 10 points
+    with pytest.raises(ValueError, match="out of range"):
+        read_polydata(tmp_path / "few.vtk")

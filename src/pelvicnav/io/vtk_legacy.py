@@ -85,13 +85,20 @@ def _parse(data: bytes) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     if line.upper() != "DATASET POLYDATA":
         raise ValueError(f"expected 'DATASET POLYDATA', got {line!r}")
 
-    points = triangles = None
+    points = triangles = tail = None
     while pos < len(data):
+        start = pos
         line, pos = _next_keyword_line(data, pos)
         if not line:
             break
         words = line.split()
         key = words[0].upper()
+        if key == "POLYGONS" and points is not None and mode == "ASCII":
+            tail = data[start:]  # this section and the rest of the file
+            known = _TAILS.get(tail)
+            if known is not None:  # byte for byte a tail parsed before: the same triangles
+                triangles = known.copy()
+                break
         if key == "POINTS":
             if len(words) != 3 or not words[1].isdigit():
                 raise ValueError(f"malformed POINTS header {line!r}")
@@ -129,7 +136,19 @@ def _parse(data: bytes) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
             f"triangle indices out of range [0, {len(points)}): "
             f"min {triangles.min()}, max {triangles.max()}"
         )
+    if tail is not None and tail not in _TAILS:
+        while len(_TAILS) >= _TAILS_KEPT:
+            _TAILS.pop(next(iter(_TAILS)))
+        _TAILS[tail] = triangles.copy()
     return points, triangles
+
+
+# The triangles of recently read files, keyed by the bytes of their POLYGONS section to the end
+# of the file. Corresponded meshes (the atlas: 40 subjects per bone) share their triangles, and
+# parsing them was 70 % of reading the atlas (1.8 s -> 0.7 s). Only a tail that parsed without
+# error is kept, and a file with the same tail would parse to the same triangles.
+_TAILS: dict[bytes, NDArray[np.int64]] = {}
+_TAILS_KEPT = 4
 
 
 def _read_values(
