@@ -319,11 +319,12 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
         converged = False
         warnings.extend(ambiguous)
     metric = cfg.pyramid.metrics[fine.index]
-    floor = cfg.min_similarity_for(metric) * _attainable(metric, drrs[0], len(views))
+    per_view = cfg.min_similarity_for(metric)
+    floor = per_view * _attainable(metric, drrs[0], len(views))
     if similarity < floor:
         converged = False
         warnings.append(f"final similarity {similarity:.3f} is below {floor:.3f} "
-                        f"({cfg.min_similarity_for(metric)} per view)")  # fmt: skip
+                        f"({per_view} per view)")  # fmt: skip
     return MultiBodyResult(
         poses=poses,
         projections=views.projections,

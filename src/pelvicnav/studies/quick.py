@@ -18,16 +18,16 @@ import time
 from pathlib import Path
 
 from pelvicnav.io.atomic import write_text
-from pelvicnav.studies.runner import local_cluster
+from pelvicnav.studies.runner import WORKER_ENV, local_cluster
 
 __all__ = ["QUICK_STUDIES", "run_quick"]
 
 # Longest first: the ones that run alone at the end bound the total.
 QUICK_STUDIES = ("runtime", "segmentation", "capture-range", "registration", "dose", "fov",
                  "target-pose")  # fmt: skip
-_IN_PROCESS = ("runtime",)  # no --scheduler option: it times each step where it runs
-# ... on one core here, as the workers do: beside them, more threads would only take turns
-_ONE_CORE = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+# No --scheduler option: it times each step where it runs, here with the workers' one-thread
+# environment (beside them, more threads would only take turns).
+_IN_PROCESS = ("runtime",)
 GOAL_S = 120.0  # issue 16: every quick study together within two minutes on two cores
 
 
@@ -57,7 +57,7 @@ def run_quick(out: str | Path, *, workers: int | None = None,
         for study in studies:
             fh = open(out / f"{study}.log", "w")  # noqa: SIM115 (closed when it ends)
             cmd = _command(study, out, cluster.scheduler_address)
-            env = {**os.environ, **_ONE_CORE} if study in _IN_PROCESS else None
+            env = {**os.environ, **WORKER_ENV} if study in _IN_PROCESS else None
             running[study] = (subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env),
                               fh)  # fmt: skip
         failed = _wait(running, seconds, started)

@@ -30,10 +30,10 @@ from pathlib import Path
 from pelvicnav.io.atomic import write_text
 from pelvicnav.studies.store import ResultStore
 
-__all__ = ["SCHEDULER_TIMEOUT_S", "Study", "flatten", "local_cluster", "run_study"]
+__all__ = ["SCHEDULER_TIMEOUT_S", "WORKER_ENV", "Study", "flatten", "local_cluster", "run_study"]
 
 SCHEDULER_TIMEOUT_S = 8
-_WORKER_ENV = {
+WORKER_ENV = {
     "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
     "NUMBA_NUM_THREADS": "1", "OMP_WAIT_POLICY": "passive",
 }  # fmt: skip
@@ -103,7 +103,7 @@ def local_cluster(workers: int | None = None):
     # in the kernel instead of 1.9 s (25 s against 23 s). The workers keep glibc's own tuning.
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
         return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                            dashboard_address=None, env=_WORKER_ENV, silence_logs=40)  # fmt: skip
+                            dashboard_address=None, env=WORKER_ENV, silence_logs=40)  # fmt: skip
 
 
 def run_study(
