@@ -413,6 +413,8 @@ def _compile_fast():  # pragma: no cover - compiled code
             # separable tent blur of the splatted box and its margin only (a single bone fills a
             # fraction of the image). Written out here rather than in helper functions: numba
             # does not cache kernels that call jitted closures (3 s of compiling per process).
+            # The canvas is zero outside the box and its padding covers the taps, so each tap is
+            # one contiguous (vectorised) pass over a row.
             ru = radius[b, k, 0]
             Ru = int(np.floor(ru))
             wu = np.empty(2 * Ru + 1)
@@ -425,24 +427,31 @@ def _compile_fast():  # pragma: no cover - compiled code
             for j in range(-Rv, Rv + 1):
                 wv[j + Rv] = max(0.0, 1.0 - abs(j) / rv) if rv > 0 else (1.0 if j == 0 else 0.0)
             wv = wv / wv.sum()
-            n1 = img.shape[1]
-            cl = max(c_lo - Ru, 0)  # columns the horizontal pass writes
-            ch = min(c_hi + Ru, n1 - 1)
-            tmp = np.empty_like(img)
+            ca = max(c_lo - Ru, pad)  # canvas columns that reach the image
+            cb = min(c_hi + Ru, pad + cols - 1)
+            if ca > cb:
+                continue
+            n = cb - ca + 1
+            tmp = np.zeros((r_hi - r_lo + 1, n))  # the horizontal pass, rows of the box
             for a in range(r_lo, r_hi + 1):
-                for c in range(cl, ch + 1):
-                    acc = 0.0
-                    for j in range(max(-Ru, c_lo - c), min(Ru, c_hi - c) + 1):
-                        acc += wu[j + Ru] * img[a, c + j]
-                    tmp[a, c] = acc
+                row = tmp[a - r_lo]
+                src = img[a]
+                for j in range(-Ru, Ru + 1):
+                    wj = wu[j + Ru]
+                    for c in range(n):
+                        row[c] += wj * src[ca + c + j]
             o = out[b, k]
-            for r in range(max(r_lo - Rv - pad, 0), min(r_hi + Rv - pad, rows - 1) + 1):
-                a = r + pad
-                for c in range(max(cl - pad, 0), min(ch - pad, cols - 1) + 1):
-                    acc = 0.0
-                    for j in range(max(-Rv, r_lo - a), min(Rv, r_hi - a) + 1):
-                        acc += wv[j + Rv] * tmp[a + j, c + pad]
-                    o[r, c] = acc
+            acc = np.empty(n)
+            for a in range(max(r_lo - Rv, pad), min(r_hi + Rv, pad + rows - 1) + 1):
+                acc[:] = 0.0
+                for j in range(max(-Rv, r_lo - a), min(Rv, r_hi - a) + 1):
+                    wj = wv[j + Rv]
+                    src = tmp[a + j - r_lo]
+                    for c in range(n):
+                        acc[c] += wj * src[c]
+                dst = o[a - pad]
+                for c in range(n):
+                    dst[ca - pad + c] = acc[c]
 
     return kernel
 
@@ -469,18 +478,24 @@ def _compile_adjoint_blur():  # pragma: no cover - compiled code
             wv = wv / wv.sum()
             nr, nc = rows + 2 * pad, cols + 2 * pad
             tmp = np.zeros((nr, cols))  # the vertical pass, image columns only
+            for a in range(nr):  # each tap one contiguous (vectorised) pass over a row
+                row = tmp[a]
+                for j in range(max(-Rv, pad - a), min(Rv, pad + rows - 1 - a) + 1):
+                    wj = wv[j + Rv]
+                    src = G[k, a + j - pad]
+                    for c in range(cols):
+                        row[c] += wj * src[c]
+            acc = np.empty(nc)
             for a in range(nr):
-                for c in range(cols):
-                    acc = 0.0
-                    for j in range(max(-Rv, pad - a), min(Rv, pad + rows - 1 - a) + 1):
-                        acc += wv[j + Rv] * G[k, a + j - pad, c]
-                    tmp[a, c] = acc
-            for a in range(nr):
+                acc[:] = 0.0
+                src = tmp[a]
+                for j in range(-Ru, Ru + 1):
+                    wj = wu[j + Ru]
+                    for cc in range(max(pad - j, 0), min(pad + cols - 1 - j, nc - 1) + 1):
+                        acc[cc] += wj * src[cc + j - pad]
+                dst = H[k, a]
                 for cc in range(nc):
-                    acc = 0.0
-                    for j in range(max(-Ru, pad - cc), min(Ru, pad + cols - 1 - cc) + 1):
-                        acc += wu[j + Ru] * tmp[a, cc + j - pad]
-                    H[k, a, cc] = acc
+                    dst[cc] = acc[cc]
 
     return kernel
 

@@ -327,7 +327,7 @@ def gradient_ncc_gradients(
 def _compile_gncc():  # pragma: no cover - compiled code
     import numba as nb
 
-    @nb.njit(parallel=True, cache=True)
+    @nb.njit(parallel=True, cache=True, fastmath=True)  # fastmath: vectorised sums (1e-14)
     def kernel(fx, fy, moving, out):
         n, H, W = moving.shape
         npix = H * W
@@ -340,25 +340,24 @@ def _compile_gncc():  # pragma: no cover - compiled code
             sxf = 0.0
             syf = 0.0
             for r in range(H):
-                r0 = r - 1 if r > 0 else 0
-                r2 = r + 1 if r < H - 1 else H - 1
+                up = img[r - 1 if r > 0 else 0]
+                mid = img[r]
+                dn = img[r + 1 if r < H - 1 else H - 1]
+                frx = fx[r]
+                fry = fy[r]
                 for c in range(W):
                     c0 = c - 1 if c > 0 else 0
                     c2 = c + 1 if c < W - 1 else W - 1
-                    a = np.float64(img[r0, c2]) - img[r0, c0]
-                    bb = np.float64(img[r, c2]) - img[r, c0]
-                    cc = np.float64(img[r2, c2]) - img[r2, c0]
-                    gx = (a + 2.0 * bb + cc) / 8.0
-                    a = np.float64(img[r2, c0]) - img[r0, c0]
-                    bb = np.float64(img[r2, c]) - img[r0, c]
-                    cc = np.float64(img[r2, c2]) - img[r0, c2]
-                    gy = (a + 2.0 * bb + cc) / 8.0
+                    gx = (np.float64(up[c2]) - up[c0] + 2.0 * (np.float64(mid[c2]) - mid[c0])
+                          + np.float64(dn[c2]) - dn[c0]) / 8.0  # fmt: skip
+                    gy = (np.float64(dn[c0]) - up[c0] + 2.0 * (np.float64(dn[c]) - up[c])
+                          + np.float64(dn[c2]) - up[c2]) / 8.0  # fmt: skip
                     sx += gx
                     sy += gy
                     sxx += gx * gx
                     syy += gy * gy
-                    sxf += gx * fx[r, c]
-                    syf += gy * fy[r, c]
+                    sxf += gx * frx[c]
+                    syf += gy * fry[c]
             total = 0.0
             vx = sxx - sx * sx / npix  # sum of squared deviations (0 for a flat image)
             vy = syy - sy * sy / npix
