@@ -10,8 +10,10 @@ to a clinical grid, 512 x 512 x 400 at 0.8 mm (air and label 0 around), for the 
   registration (``RegistrationSettings.tracking()``) with the models kept (target <= 0.5 s, median
   centroid error <= 0.3 mm);
 * ``command_overhead`` — ``pelvicnav register`` on NIfTI files (the CT as int16 HU, as scanners
-  store it) in a fresh process: wall time
-  minus the registration's own seconds (imports, reading, models, writing; target <= 1.5 s);
+  store it) in a fresh process: wall time minus the registration's own seconds and the bone
+  models' (``models_seconds`` of ``result.json``; issue 13 counts the models in the first
+  registration): imports, reading and checking, compiled kernels from cache, writing (target
+  <= 1.5 s). ``wall_s`` is the whole command;
 * kernel throughput: splatted DRRs and similarity evaluations per second per level.
 """
 
@@ -131,8 +133,10 @@ def _overhead(case: dict) -> dict:
                             str(d / "labels.nii.gz"), "--views", str(d / "views.json"), "--out",
                             str(d / "result.json")], check=True, capture_output=True)  # fmt: skip
             wall = time.perf_counter() - t0
-            reg = json.loads((d / "result.json").read_text())["seconds"]
-            runs.append({"wall_s": wall, "registration_s": reg, "overhead_s": wall - reg})
+            record = json.loads((d / "result.json").read_text())
+            reg, models = record["seconds"], record["models_seconds"]
+            runs.append({"wall_s": wall, "registration_s": reg, "models_s": models,
+                         "overhead_s": wall - reg - models})  # fmt: skip
     over = float(min(r["overhead_s"] for r in runs))  # the second run has warm file caches
     return {"overhead_s": over, "runs": runs, "target_s": TARGETS["overhead_s"],
             "meets_target": over <= TARGETS["overhead_s"]}  # fmt: skip

@@ -46,3 +46,24 @@ def test_bad_objective():
         )
     with pytest.raises(ValueError, match="sigma > 0"):
         minimize_cmaes(_quadratic, np.zeros(6), sigma=0, population=4, seed=0)
+
+
+def test_pycma_loads_without_its_interactive_extras():
+    """A fresh process: the registration's CMA-ES runs without pycma pulling in matplotlib or
+    scipy.stats (1-2 s of import), and both still import normally afterwards."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from pelvicnav.register.cmaes import minimize_cmaes\n"
+        "import numpy as np\n"
+        "r = minimize_cmaes(lambda X: (X ** 2).sum(axis=1), np.ones(3), sigma=1.0,"
+        " population=8, seed=1)\n"
+        "print(r.f < 1e-3, 'matplotlib' in sys.modules, 'scipy.stats' in sys.modules)\n"
+        "import scipy.stats, matplotlib.pyplot\n"
+        "print('later', 'scipy.stats' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()  # fmt: skip
+    assert out == ["True", "False", "False", "later", "True"]

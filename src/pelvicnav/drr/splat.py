@@ -31,8 +31,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
+from pelvicnav.geometry import transforms as tf
 
-__all__ = ["PointModel", "point_model", "splat", "splat_pullback"]
+__all__ = ["PointModel", "model_from_block_sums", "point_model", "splat", "splat_pullback"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,12 +87,22 @@ def point_model(volume: Volume, factors: Sequence[int] = (1, 1, 1)) -> PointMode
     blocks = [int(np.ceil(n / k)) for n, k in zip(data.shape, f, strict=True)]
     sums = np.zeros((4, *blocks))  # mass, then its first moment along i, j, k
     _compile_blocks()(data, np.asarray(f, dtype=np.int64), sums)
+    return model_from_block_sums(sums, volume.world_from_ijk, f)
+
+
+def model_from_block_sums(
+    sums: NDArray[np.float64], world_from_ijk: ArrayLike, factors: Sequence[int]
+) -> PointModel:
+    """The point model of block sums ``(4, bi, bj, bk)`` (attenuation, then its first moment
+    along i, j, k in voxel indices of the grid ``world_from_ijk``) of blocks ``factors`` voxels
+    on a side: one sample per non-empty block at its mass-weighted centre."""
+    A = np.asarray(world_from_ijk, dtype=np.float64)
     mass = sums[0]
     keep = mass > 0
     ijk = np.stack([sums[1 + a][keep] / mass[keep] for a in range(3)], axis=1)
-    voxel_volume = abs(np.linalg.det(volume.world_from_ijk[:3, :3]))
-    spacing = float(np.max(volume.spacing * np.asarray(f)))
-    return PointModel(volume.world_points(ijk), mass[keep] * voxel_volume, spacing)
+    voxel_volume = abs(np.linalg.det(A[:3, :3]))
+    spacing = float(np.max(np.linalg.norm(A[:3, :3], axis=0) * np.asarray(factors)))
+    return PointModel(tf.apply(A, ijk), mass[keep] * voxel_volume, spacing)
 
 
 @functools.cache  # compile once per process, on first use

@@ -9,6 +9,10 @@ Reference: N. Hansen, "The CMA evolution strategy: a tutorial" (2016), arXiv:160
 
 from __future__ import annotations
 
+import functools
+import importlib.abc
+import sys
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -18,6 +22,47 @@ from numpy.typing import ArrayLike, NDArray
 __all__ = ["CMAESResult", "minimize_cmaes"]
 
 _CONVERGED = ("tolfun", "tolfunhist", "tolx", "tolstagnation", "tolflatfitness")
+
+
+class _WithoutExtras(importlib.abc.MetaPathFinder):
+    """Refuses matplotlib and scipy.stats to pycma's own modules while pycma is imported.
+
+    pycma imports both at import time for its interactive extras (``cma.plot``, ``cma.s``) and
+    its surrogate models, none of which the registration uses, and handles their absence. They
+    cost 1.0-2.2 s of every process's first registration (``import cma``: 1.5 s of import time,
+    of it scipy.stats 0.9 s and matplotlib.pyplot 0.4 s), against 0.05 s without. Only imports
+    made from a ``cma`` module are refused, so another thread importing either is unaffected, and
+    both import normally once pycma is loaded.
+    """
+
+    EXTRAS = ("matplotlib", "scipy.stats")
+
+    def find_spec(self, name, path=None, target=None):
+        if not any(name == e or name.startswith(e + ".") for e in self.EXTRAS):
+            return None
+        frame = sys._getframe(1)
+        while frame is not None:
+            module = frame.f_globals.get("__name__", "")
+            if module == "cma" or module.startswith("cma."):
+                raise ImportError(f"{name} is not loaded for pycma (see pelvicnav.register.cmaes)")
+            frame = frame.f_back
+        return None
+
+
+@functools.cache
+def _pycma():
+    """The ``cma`` module, imported without its interactive extras (:class:`_WithoutExtras`)."""
+    if "cma" in sys.modules:
+        return sys.modules["cma"]
+    hook = _WithoutExtras()
+    sys.meta_path.insert(0, hook)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "Could not import matplotlib.pyplot ..."
+            import cma
+    finally:
+        sys.meta_path.remove(hook)
+    return cma
 
 
 @dataclass(frozen=True)
@@ -88,8 +133,7 @@ def minimize_cmaes(
     ValueError
         Non-positive sigma or population, or an objective returning the wrong shape or NaN.
     """
-    import cma
-
+    cma = _pycma()
     x0 = np.asarray(x0, dtype=np.float64)
     if sigma <= 0 or population < 2:
         raise ValueError(f"need sigma > 0 and population >= 2, got {sigma}, {population}")

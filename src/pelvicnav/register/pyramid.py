@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter
 
-from pelvicnav.drr.attenuation import bone_volumes, sample_volumes
+from pelvicnav.drr.attenuation import bone_point_models
 from pelvicnav.drr.renderer import Renderer, SplatRenderer
 from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
@@ -70,8 +70,8 @@ def downsample_image(image: ArrayLike, factor: int) -> NDArray[np.float64]:
 def splat_renderer(ct_hu: Volume, labels: ArrayLike, factors: Sequence[int]) -> SplatRenderer:
     """Bone point models for each pyramid level (sample spacing ``SAMPLE_MM_PER_FACTOR`` x
     factor). Build once per CT and pass to every frame's registration."""
-    vols = bone_volumes(ct_hu, labels)  # the attenuation once, sampled per level
-    return SplatRenderer(tuple(sample_volumes(vols, SAMPLE_MM_PER_FACTOR * f) for f in factors))
+    spacings = [SAMPLE_MM_PER_FACTOR * f for f in factors]
+    return SplatRenderer(bone_point_models(ct_hu, labels, spacings))
 
 
 @dataclass(frozen=True, eq=False)

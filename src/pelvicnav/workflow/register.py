@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -182,16 +183,18 @@ def register_files(
     previous = None if init is None else read_init(init, n_views=len(vs), ct=fingerprint)
     settings = RegistrationSettings.for_dof(dof)
     volume = Volume(data, affine)  # integer HU as stored, no float copy
+    t_models = time.perf_counter()
     try:  # one set of bone models for registration and overlays
         models = splat_renderer(volume, lab, settings.factors)
     except ValueError as err:
         raise ValueError(f"{labels}: {err}") from None
+    t_models = time.perf_counter() - t_models
     result, mode = track_or_register(
         volume, lab, ViewSet(tuple(vs)), models, dof=dof, seed=seed, previous=previous,
         dislocated=None if the_plan is None else the_plan["dislocated_bone"], progress=progress,
     )  # fmt: skip
     record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed,
-              "mode": mode, "ct": fingerprint}  # fmt: skip
+              "mode": mode, "ct": fingerprint, "models_seconds": t_models}  # fmt: skip
     if init is not None:
         record["init"] = str(init)
     record |= result.to_json()
