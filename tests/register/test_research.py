@@ -13,9 +13,10 @@ from pelvicnav.register.settings import RegistrationSettings
 BONES = ("sacrum", "left_hip", "right_hip")
 
 
-def _run(monkeypatch, outcomes, n_views=2, count=1):
-    """Re-search with each search returning (f_alt, d_mm) from ``outcomes``; the answer scores
-    -1.0 (objectives are minimised)."""
+def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0):
+    """Re-search with each search returning (f_alt, d_mm) from ``outcomes`` (re-searches first,
+    then the searches from ``rays`` ray starts); the answer scores -1.0 (objectives are
+    minimised)."""
     calls = []
 
     def search(problem, i, y, r, seed):
@@ -26,11 +27,16 @@ def _run(monkeypatch, outcomes, n_views=2, count=1):
     def compare(problem, i, y, x_alt, views):
         return -1.0, outcomes[len(calls) - 1][1], 0.0
 
+    def from_ray(problem, i, y, x, seeds, weights, sweep):
+        return search(problem, i, y, "ray", 0)
+
     monkeypatch.setattr(rs, "_search_from_stage1", search)
+    monkeypatch.setattr(rs, "_search_from", from_ray)
+    monkeypatch.setattr(rs, "_ray_starts", lambda problem, i, y, views: [np.zeros(6)] * rays)
     monkeypatch.setattr(rs, "_compare", compare)
     monkeypatch.setattr(rs, "_repass", lambda problem, y, r, seed, out: y)
     problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
-                              settings=RegistrationSettings())  # fmt: skip
+                              settings=RegistrationSettings(), searched=[0, 1])  # fmt: skip
     out = rs.research(problem, np.zeros(18), [None] * n_views, seed=0, count=count)
     return out, calls
 
@@ -59,3 +65,54 @@ def test_one_view_keeps_its_distance_rule_without_retries(monkeypatch):
     out, calls = _run(monkeypatch, [(-0.9, 5.0), (-0.95, 0.3)], n_views=1, count=2)
     assert calls == [0, 1]
     assert len(out.warnings) == 1 and "not determined" in out.warnings[0]
+
+
+def test_a_better_answer_along_a_ray_takes_over(monkeypatch):
+    out, calls = _run(monkeypatch, [(-0.99, 0.5), (-1.05, 28.6)], rays=1)
+    assert calls == [0, "ray"] and not out.warnings
+    assert np.all(out.y[6:12] == 2.0)  # the ray search's answer
+
+
+def test_a_far_worse_answer_along_a_ray_neither_retries_nor_flags(monkeypatch):
+    out, calls = _run(monkeypatch, [(-0.99, 0.5), (-0.9, 25.0), (-0.8, 30.0)], rays=2)
+    assert calls == [0, "ray", "ray"] and not out.warnings
+    assert np.all(out.y == 0.0)
+
+
+def test_an_equally_good_answer_along_a_ray_flags_the_ambiguity(monkeypatch):
+    out, calls = _run(monkeypatch, [(-0.99, 0.5), (-0.995, 20.0)], rays=1)
+    assert len(out.warnings) == 1 and "do not pin its pose down" in out.warnings[0]
+
+
+def test_no_ray_probe_with_one_view_or_without_re_searches(monkeypatch):
+    _, calls = _run(monkeypatch, [(-0.9, 1.0)], n_views=1, rays=1)
+    assert calls == [0]
+    _, calls = _run(monkeypatch, [], count=0, rays=1)
+    assert calls == []
+
+
+def test_the_ray_probe_finds_the_other_optimum_on_a_views_ray():
+    """Two equally good places for the bone 24 mm apart on the AP view's ray through it, and a
+    worse one on the same ray: one start, at the other good place; the lateral view's ray
+    through the bone meets neither."""
+    from pelvicnav.geometry import projection as pj
+
+    views = [pj.CArm(orbit_deg=o).projection_matrix for o in (0.0, 90.0)]
+    centre = np.array([30.0, 10.0, -5.0])
+    ray = centre - pj.decompose_projection(views[0]).source
+    d = ray / np.linalg.norm(ray)
+
+    def objective(X):
+        wells = ((0.0, 1.0), (24.0 * d, 1.0), (-16.0 * d, 0.9))  # (where, depth)
+        return -sum(depth * np.exp(-np.sum((X[:, :3] - c) ** 2, axis=1) / 20.0)
+                    for c, depth in wells)  # fmt: skip
+
+    problem = SimpleNamespace(
+        settings=RegistrationSettings(), searched=[0],
+        blocks=SimpleNamespace(centres=np.array([[0.0] * 3, centre, [0.0] * 3])),
+        objective=lambda i, y, lv: objective,
+    )  # fmt: skip
+    starts = rs._ray_starts(problem, 1, np.zeros(18), SimpleNamespace(projections=views))
+    assert len(starts) == 1
+    np.testing.assert_allclose(starts[0][:3], 24.0 * d, atol=1e-9)
+    assert np.all(starts[0][3:] == 0.0)

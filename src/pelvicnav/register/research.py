@@ -6,6 +6,12 @@ with the coarse-level rotation prior, see
 the winner comes from another basin, every bone gets one more fine-level pass over the corrected
 DRRs. Two answers far apart with nearly equal similarity mean the images do not pin the bone
 down: a warning, and the registration is flagged.
+
+With two or more views, the bone is then probed along each view's ray (from the source through
+its centroid): a move along it keeps the bone's outline in that view, so a bone that the other
+views show little of can sit in two places on it that score alike, and random re-searches from
+the stage-1 pose find the other one by chance only (:func:`_ray_starts`; see
+:class:`~pelvicnav.register.settings.ResearchSettings` ``ray_mm``).
 """
 
 from __future__ import annotations
@@ -15,13 +21,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from pelvicnav.geometry import projection as pj
 from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.errors import pose_disagreement
 from pelvicnav.register.cmaes import CMAESResult
-from pelvicnav.register.seeds import REPASS, RESEARCH, run_seed
+from pelvicnav.register.seeds import RAY, REPASS, RESEARCH, run_seed
 from pelvicnav.register.stage2 import Stage2Problem, with_block
 
 __all__ = ["ResearchOutcome", "research"]
+
+RAY_STEP_MM = 2.0  # the ray probe's step (the coarse level's samples are 3 mm apart)
 
 
 @dataclass
@@ -39,16 +48,49 @@ def _search_from_stage1(
 ) -> tuple[NDArray, list[CMAESResult]]:
     """Bone ``i`` from zero parameters over every searched level (re-search ``r``)."""
     weight = problem.settings.research.coarse_rotation_prior * len(problem.levels[0].projections)
-    x, runs = np.zeros(6), []
+    weights = [weight if r % 2 == 0 and lv != problem.fine else 0.0 for lv in problem.searched]
+    seeds = [run_seed(seed, RESEARCH, r, lv, i) for lv in problem.searched]
+    return _search_from(problem, i, y, np.zeros(6), seeds, weights, sweep=0)
+
+
+def _search_from(
+    problem: Stage2Problem, i: int, y: NDArray, x: NDArray, seeds: list[int],
+    weights: list[float], sweep: int,
+) -> tuple[NDArray, list[CMAESResult]]:  # fmt: skip
+    """Bone ``i`` from parameters ``x`` over every searched level, the others fixed at ``y``."""
+    runs = []
     by_search = problem.settings.research.fine == "cmaes"
-    for lv in problem.searched:
-        w = weight if r % 2 == 0 and lv != problem.fine else 0.0
-        res = problem.search(i, with_block(y, i, x), lv, x, sweep=0,
-                             seed=run_seed(seed, RESEARCH, r, lv, i), weight=w,
+    for lv, run, w in zip(problem.searched, seeds, weights, strict=True):
+        res = problem.search(i, with_block(y, i, x), lv, x, sweep=sweep, seed=run, weight=w,
                              cmaes=by_search and lv == problem.fine)  # fmt: skip
         runs.append(res)
         x = res.x
     return x, runs
+
+
+def _ray_starts(problem: Stage2Problem, i: int, y: NDArray, views: ViewSet) -> list[NDArray]:
+    """Bone ``i``'s parameters moved along each view's ray through its centroid to the best local
+    optimum of the coarsest level's objective at least ``ray_min_mm`` away that scores within
+    ``ray_margin`` of where the bone is (at most one per view)."""
+    rs = problem.settings.research
+    lv = problem.searched[0]
+    x = y[6 * i : 6 * i + 6]
+    centre = problem.blocks.centres[i] + x[:3]  # the bone's centroid at x (world mm)
+    steps = np.arange(-rs.ray_mm, rs.ray_mm + 1e-9, RAY_STEP_MM)
+    objective = problem.objective(i, y, lv)
+    f0 = float(objective(x[None])[0])
+    starts = []
+    for P in views.projections:
+        ray = centre - pj.decompose_projection(P).source
+        X = np.tile(x, (len(steps), 1))
+        X[:, :3] += steps[:, None] * (ray / np.linalg.norm(ray))
+        f = objective(X)
+        best = [k for k in range(1, len(steps) - 1)
+                if f[k] < f[k - 1] and f[k] < f[k + 1] and abs(steps[k]) >= rs.ray_min_mm
+                and f[k] <= f0 + rs.ray_margin]  # fmt: skip
+        if best:
+            starts.append(X[min(best, key=lambda k: f[k])])
+    return starts
 
 
 def _repass(problem: Stage2Problem, y: NDArray, r: int, seed: int, out: ResearchOutcome):
@@ -93,7 +135,8 @@ def research(
     for i in check:
         far, r = 0, 0
         while r < count + min(far, 1):
-            if _one_research(problem, i, r, seed, views, out) and len(views) > 1:
+            x_alt, runs = _search_from_stage1(problem, i, out.y, r, seed)
+            if _judge(problem, i, x_alt, runs, r, seed, views, out) and len(views) > 1:
                 far += 1
             r += 1
         if far > 1:  # the answer's basin found by one search only, missed by two others
@@ -102,16 +145,21 @@ def research(
                 f"{problem.settings.research.retry_mm:g} mm away and scored worse: the answer "
                 "was found once only"
             )
+        if count and len(views) > 1 and problem.settings.research.ray_mm > 0:
+            for k, x0 in enumerate(_ray_starts(problem, i, out.y, views)):
+                seeds = [run_seed(seed, RAY, k, lv, i) for lv in problem.searched]
+                x_alt, runs = _search_from(problem, i, out.y, x0, seeds,
+                                           [0.0] * len(seeds), sweep=1)  # fmt: skip
+                _judge(problem, i, x_alt, runs, r + k, seed, views, out)
     return out
 
 
-def _one_research(problem: Stage2Problem, i: int, r: int, seed: int, views: ViewSet,
-                  out: ResearchOutcome) -> bool:  # fmt: skip
-    """Re-search ``r`` of bone ``i``: the better answer into ``out``; True when it lost from
-    more than ``retry_mm`` away."""
+def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResult], r: int,
+           seed: int, views: ViewSet, out: ResearchOutcome) -> bool:  # fmt: skip
+    """An alternative answer ``x_alt`` of bone ``i`` (found by ``runs``) against ``out``'s: the
+    better into ``out``, with its warnings; True when it lost from more than ``retry_mm`` away."""
     rs = problem.settings.research
     bone = problem.blocks.bones[i]
-    x_alt, runs = _search_from_stage1(problem, i, out.y, r, seed)
     out.runs.extend(runs)
     f_now, d_mm, d_deg = _compare(problem, i, out.y, x_alt, views)
     out.disagreement[bone] = max(out.disagreement.get(bone, 0.0), d_mm)
