@@ -110,9 +110,12 @@ def test_the_ray_probe_finds_the_other_optimum_on_a_views_ray():
     problem = SimpleNamespace(
         settings=RegistrationSettings(), searched=[0],
         blocks=SimpleNamespace(centres=np.array([[0.0] * 3, centre, [0.0] * 3])),
-        objective=lambda i, y, lv: objective,
+        objective=lambda i, y, lv: objective, box=lambda i: np.array([25.0] * 3 + [12.0] * 3),
     )  # fmt: skip
     starts = rs._ray_starts(problem, 1, np.zeros(18), SimpleNamespace(projections=views))
     assert len(starts) == 1
     np.testing.assert_allclose(starts[0][:3], 24.0 * d, atol=1e-9)
     assert np.all(starts[0][3:] == 0.0)
+    # the other place outside the bone's search box (a CMA-ES start must lie in it): none
+    problem.box = lambda i: np.array([15.0] * 3 + [12.0] * 3)
+    assert rs._ray_starts(problem, 1, np.zeros(18), SimpleNamespace(projections=views)) == []

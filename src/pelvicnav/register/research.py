@@ -71,7 +71,7 @@ def _search_from(
 def _ray_starts(problem: Stage2Problem, i: int, y: NDArray, views: ViewSet) -> list[NDArray]:
     """Bone ``i``'s parameters moved along each view's ray through its centroid to the best local
     optimum of the coarsest level's objective at least ``ray_min_mm`` away that scores within
-    ``ray_margin`` of where the bone is (at most one per view)."""
+    ``ray_margin`` of where the bone is (at most one per view), inside the bone's search box."""
     rs = problem.settings.research
     lv = problem.searched[0]
     x = y[6 * i : 6 * i + 6]
@@ -79,12 +79,15 @@ def _ray_starts(problem: Stage2Problem, i: int, y: NDArray, views: ViewSet) -> l
     steps = np.arange(-rs.ray_mm, rs.ray_mm + 1e-9, RAY_STEP_MM)
     objective = problem.objective(i, y, lv)
     f0 = float(objective(x[None])[0])
+    box = problem.box(i)
     starts = []
     for P in views.projections:
         ray = centre - pj.decompose_projection(P).source
         X = np.tile(x, (len(steps), 1))
         X[:, :3] += steps[:, None] * (ray / np.linalg.norm(ray))
-        f = objective(X)
+        inside = np.all(np.abs(X) <= box, axis=1)
+        f = np.full(len(steps), np.inf)
+        f[inside] = objective(X[inside])
         best = [k for k in range(1, len(steps) - 1)
                 if f[k] < f[k - 1] and f[k] < f[k + 1] and abs(steps[k]) >= rs.ray_min_mm
                 and f[k] <= f0 + rs.ray_margin]  # fmt: skip
