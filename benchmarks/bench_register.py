@@ -10,10 +10,11 @@ to a clinical grid, 512 x 512 x 400 at 0.8 mm (air and label 0 around), for the 
   registration (``RegistrationSettings.tracking()``) with the models kept (target <= 0.5 s, median
   centroid error <= 0.3 mm);
 * ``command_overhead`` — ``pelvicnav register`` on NIfTI files (the CT as int16 HU, as scanners
-  store it) in a fresh process: wall time minus the registration's own seconds and the bone
-  models' (``models_seconds`` of ``result.json``; issue 13 counts the models in the first
-  registration): imports, reading and checking, compiled kernels from cache, writing (target
-  <= 1.5 s). ``wall_s`` is the whole command;
+  store it) with a plan, in a fresh process: wall time minus the registration's own seconds and
+  the bone models' (``models_seconds`` of ``result.json``; issue 13 counts the models in the
+  first registration): imports, reading and checking, compiled kernels from cache, writing
+  (target <= 1.5 s); cold (a CT's first command) and warm (the same files again: the bone
+  models from the cache). ``wall_s`` is the whole command;
 * kernel throughput: splatted DRRs and similarity evaluations per second per level.
 """
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -112,34 +114,48 @@ def _registrations(case: dict) -> tuple[dict, dict, dict]:
 
 
 def _overhead(case: dict) -> dict:
-    """``pelvicnav register`` in a fresh process: wall time minus the registration's seconds."""
+    """``pelvicnav register`` (with a plan naming the dislocated bone) in fresh processes: wall
+    time minus the registration's and the bone models' seconds. Cold: an empty cache of bone
+    models (the CT read, checked and sampled: a CT's first command); warm: the same files again
+    (the models from the cache, :mod:`pelvicnav.workflow.bone_cache`: every later frame of a
+    guidance run). Two of each, the smaller kept (the cores are shared)."""
     from pelvicnav.io.views import View, write_views
     from pelvicnav.io.volume import write_volume
 
-    runs = []
+    runs = {"cold": [], "warm": []}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         hu = np.clip(np.round(case["ct"].data), -32768, 32767).astype(np.int16)  # as scanners
         write_volume(d / "ct.nii.gz", hu, case["ct"].world_from_ijk)  # store it (float32: 4x)
         write_volume(d / "labels.nii.gz", case["labels"], case["ct"].world_from_ijk)
+        (d / "plan.json").write_text(
+            json.dumps({"dislocated_bone": case["bone"], "target_from_current": np.eye(4).tolist()})
+        )
         views = case["views"]
         write_views(d, [View(f"v{k}", img.astype(np.float32), P, ps) for k, (img, P, ps)
                         in enumerate(zip(views.images, views.projections, views.pixel_spacing,
                                          strict=True))])  # fmt: skip
         exe = Path(sys.executable).with_name("pelvicnav")
-        for _ in range(2):
+        cmd = [str(exe), "register", "--ct", str(d / "ct.nii.gz"), "--labels",
+               str(d / "labels.nii.gz"), "--views", str(d / "views.json"), "--plan",
+               str(d / "plan.json"), "--out", str(d / "result.json")]  # fmt: skip
+        for kind in ("cold", "cold", "warm", "warm"):
+            cache = d / "cache"
+            if kind == "cold":
+                shutil.rmtree(cache, ignore_errors=True)
+            env = {**os.environ, "PELVICNAV_CACHE": str(cache)}
             t0 = time.perf_counter()
-            subprocess.run([str(exe), "register", "--ct", str(d / "ct.nii.gz"), "--labels",
-                            str(d / "labels.nii.gz"), "--views", str(d / "views.json"), "--out",
-                            str(d / "result.json")], check=True, capture_output=True)  # fmt: skip
+            subprocess.run(cmd, check=True, capture_output=True, env=env)
             wall = time.perf_counter() - t0
             record = json.loads((d / "result.json").read_text())
             reg, models = record["seconds"], record["models_seconds"]
-            runs.append({"wall_s": wall, "registration_s": reg, "models_s": models,
-                         "overhead_s": wall - reg - models})  # fmt: skip
-    over = float(min(r["overhead_s"] for r in runs))  # the second run has warm file caches
-    return {"overhead_s": over, "runs": runs, "target_s": TARGETS["overhead_s"],
-            "meets_target": over <= TARGETS["overhead_s"]}  # fmt: skip
+            assert record["models_cached"] == (kind == "warm")
+            runs[kind].append({"wall_s": wall, "registration_s": reg, "models_s": models,
+                               "overhead_s": wall - reg - models})  # fmt: skip
+    out = {f"{k}_overhead_s": float(min(r["overhead_s"] for r in v)) for k, v in runs.items()}
+    return out | {"runs": runs, "target_s": TARGETS["overhead_s"],
+                  "meets_target_cold": out["cold_overhead_s"] <= TARGETS["overhead_s"],
+                  "meets_target_warm": out["warm_overhead_s"] <= TARGETS["overhead_s"]}  # fmt: skip
 
 
 def _kernels(case: dict, renderer) -> dict:

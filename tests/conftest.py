@@ -31,6 +31,12 @@ OCTA_FACES = np.array(
 BONE_OFFSETS = {"sacrum": (0, 30, 0), "left_hip": (80, 0, 0), "right_hip": (-80, 0, 0)}
 
 
+@pytest.fixture(autouse=True)
+def _own_cache(tmp_path_factory, monkeypatch):
+    """Every test its own cache of CT-derived bone models (never the user's ~/.cache)."""
+    monkeypatch.setenv("PELVICNAV_CACHE", str(tmp_path_factory.mktemp("cache")))
+
+
 @pytest.fixture
 def real_atlas_path() -> Path:
     """The real Han atlas, or skip: it is not committed and only present where CI provides it."""

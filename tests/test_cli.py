@@ -399,6 +399,9 @@ def test_register_a_simulated_case_end_to_end(tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     second = json.loads(frame2.read_text())
     assert second["mode"] == "tracking", second["warnings"]
+    # the same CT folder and labels: the bone models came from the first call's cache
+    assert (result["models_cached"], second["models_cached"]) == (False, True)
+    assert second["ct"] == result["ct"]
     setup = tf.invert(M2) @ np.asarray(truth["poses_world_from_ct"]["sacrum"])
     for value, bone in enumerate(("sacrum", "left_hip", "right_hip"), start=1):
         c = tf.apply(world_from_ijk, np.argwhere(labels == value).mean(axis=0)[None])

@@ -171,7 +171,7 @@ def _register(hu, A, labels, vs, plan, previous, seed, dof, progress):
     volume = Volume(np.asarray(hu, dtype=np.float32), A)
     models = splat_renderer(volume, labels, RegistrationSettings.for_dof(dof).factors)
     result, mode = track_or_register(
-        volume, labels, ViewSet(tuple(vs)), models, dof=dof, seed=seed,
+        ViewSet(tuple(vs)), models, dof=dof, seed=seed,
         dislocated=plan.dislocated[0] if len(plan.dislocated) == 1 else None,
         previous=None if previous is None else {"poses": previous}, progress=progress,
     )  # fmt: skip

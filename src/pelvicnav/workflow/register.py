@@ -28,6 +28,7 @@ import numpy as np
 from pelvicnav import BONES, LABELS
 
 __all__ = [
+    "bones_of_files",
     "ct_fingerprint",
     "read_init",
     "read_register_plan",
@@ -36,30 +37,29 @@ __all__ = [
 ]
 
 
-def track_or_register(volume, labels, views, models, *, dof, seed, dislocated, previous=None,
-                      progress=None):  # fmt: skip
+def track_or_register(views, models, *, dof, seed, dislocated, previous=None, progress=None):
     """Track from a previous frame, or register afresh; returns ``(result, mode)``.
 
+    ``models``: the CT's bone models (:func:`~pelvicnav.register.pyramid.splat_renderer`).
     ``previous``: ``{"poses": bone -> (4, 4), "projections": optional}`` (a 9-DoF frame's
     estimated geometry stands for the views'). Tracking uses
     :meth:`~pelvicnav.register.settings.RegistrationSettings.tracking`; when it does not
     converge, or with no previous frame, a full registration follows. ``mode`` is ``first``,
     ``tracking`` or ``re-registered``.
     """
-    from pelvicnav.register.multibody import register_multibody
+    from pelvicnav.register.multibody import register
     from pelvicnav.register.settings import RegistrationSettings
 
     if previous is not None:
         Ps = previous.get("projections") if dof == 9 else None
         tracked = views if Ps is None else views.with_projections(Ps)
-        result = register_multibody(volume, labels, tracked, init_poses=previous["poses"],
-                                    seed=seed, settings=RegistrationSettings.tracking(),
-                                    renderer=models, dislocated=dislocated)  # fmt: skip
+        tracking = RegistrationSettings.tracking()
+        result = register(tracked, models, init_poses=previous["poses"], seed=seed,
+                          settings=tracking, dislocated=dislocated)  # fmt: skip
         if result.converged:
             return result, "tracking"
-    result = register_multibody(volume, labels, views, seed=seed,
-                                settings=RegistrationSettings.for_dof(dof), progress=progress,
-                                renderer=models, dislocated=dislocated)  # fmt: skip
+    result = register(views, models, seed=seed, settings=RegistrationSettings.for_dof(dof),
+                      progress=progress, dislocated=dislocated)  # fmt: skip
     return result, ("first" if previous is None else "re-registered")
 
 
@@ -165,43 +165,34 @@ def register_files(
     ValueError
         Any input refused (the message names the file); nothing is written then.
     """
-    from pelvicnav.drr.volume import Volume
     from pelvicnav.guide.overlay import write_view_overlays
     from pelvicnav.io.atomic import write_text
     from pelvicnav.io.itk_transform import write_pose_transforms
     from pelvicnav.io.views import ViewSet, read_views
-    from pelvicnav.register.pyramid import splat_renderer
     from pelvicnav.register.settings import RegistrationSettings
-    from pelvicnav.workflow.inputs import read_ct_and_bones
 
     if dof not in (6, 9):
         raise ValueError(f"--dof must be 6 or 9, got {dof}")
     the_plan = read_register_plan(plan) if plan is not None else None
     vs, _ = read_views(views)
-    data, affine, _, lab = read_ct_and_bones(ct, labels, label_scheme, series)
-    fingerprint = ct_fingerprint(data, affine)
-    previous = None if init is None else read_init(init, n_views=len(vs), ct=fingerprint)
-    settings = RegistrationSettings.for_dof(dof)
-    volume = Volume(data, affine)  # integer HU as stored, no float copy
-    t_models = time.perf_counter()
-    try:  # one set of bone models for registration and overlays
-        models = splat_renderer(volume, lab, settings.factors)
-    except ValueError as err:
-        raise ValueError(f"{labels}: {err}") from None
-    t_models = time.perf_counter() - t_models
+    factors = RegistrationSettings.for_dof(dof).factors
+    bones, t_models, cached = bones_of_files(ct, labels, label_scheme, series, factors)
+    previous = None if init is None else read_init(init, n_views=len(vs), ct=bones.fingerprint)
     result, mode = track_or_register(
-        volume, lab, ViewSet(tuple(vs)), models, dof=dof, seed=seed, previous=previous,
+        ViewSet(tuple(vs)), bones.models, dof=dof, seed=seed, previous=previous,
         dislocated=None if the_plan is None else the_plan["dislocated_bone"], progress=progress,
     )  # fmt: skip
     record = {"views": [v.name for v in vs], "degrees_of_freedom": dof, "seed": seed,
-              "mode": mode, "ct": fingerprint, "models_seconds": t_models}  # fmt: skip
+              "mode": mode, "ct": bones.fingerprint, "models_seconds": t_models,
+              "models_cached": cached}  # fmt: skip
     if init is not None:
         record["init"] = str(init)
     record |= result.to_json()
     if the_plan is not None:
-        record["residual"] = _residual(result, the_plan, volume, lab)
+        record["residual"] = _residual(result, the_plan, bones.centroids)
     if overlay is not None:
-        write_view_overlays(overlay, models.models[-1], vs, result, the_plan, dicom=overlay_dicom)
+        write_view_overlays(overlay, bones.models.models[-1], vs, result, the_plan,
+                            dicom=overlay_dicom)  # fmt: skip
     out = Path(out)
     residual = record.get("residual", {}).get("world_transform")
     write_pose_transforms(out.parent / "transforms", result.poses, residual=residual)
@@ -209,12 +200,48 @@ def register_files(
     return record, result
 
 
-def _residual(result, plan: dict, volume, labels) -> dict:
+def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors):
+    """``(CachedBones, models_seconds, cached)`` of a CT and its label map: from the cache
+    (:mod:`pelvicnav.workflow.bone_cache`) when these files were read before, else read, checked
+    (:func:`~pelvicnav.workflow.inputs.read_ct_and_bones`), sampled into bone models for the
+    pyramid ``factors`` and stored. ValueError naming the file on bad input."""
+    from pelvicnav.drr.volume import Volume
+    from pelvicnav.io.volume import label_stats
+    from pelvicnav.register.pyramid import SAMPLE_MM_PER_FACTOR, splat_renderer
+    from pelvicnav.workflow import bone_cache
+    from pelvicnav.workflow.inputs import read_ct_and_bones
+
+    key = None
+    if bone_cache.cache_dir() is not None and all(map(bone_cache.cacheable, (ct, labels))):
+        try:
+            options = {"scheme": label_scheme, "series": series, "factors": list(factors),
+                       "sample_mm": SAMPLE_MM_PER_FACTOR}  # fmt: skip
+            key = bone_cache.cache_key(ct, labels, **options)
+        except OSError:
+            key = None  # unreadable: the reader below says why, naming the file
+    hit = None if key is None else bone_cache.load(key)
+    if hit is not None:
+        return hit, 0.0, True  # nothing built (hashing and loading count as reading)
+    data, affine, _, lab = read_ct_and_bones(ct, labels, label_scheme, series)
+    t_models = time.perf_counter()
+    try:  # one set of bone models for registration and overlays
+        models = splat_renderer(Volume(data, affine), lab, factors)  # integer HU, no float copy
+    except ValueError as err:
+        raise ValueError(f"{labels}: {err}") from None
+    t_models = time.perf_counter() - t_models
+    stats = label_stats(lab, data, [LABELS[b] for b in BONES])
+    centroids = {b: affine[:3, :3] @ stats[LABELS[b]].centroid_ijk + affine[:3, 3] for b in BONES}
+    entry = bone_cache.CachedBones(models, ct_fingerprint(data, affine), centroids)
+    if key is not None:
+        bone_cache.store(key, entry)
+    return entry, t_models, False
+
+
+def _residual(result, plan: dict, centroids: dict) -> dict:
     from pelvicnav.guide.residual import residual_reduction
 
     bone, ref = plan["dislocated_bone"], plan["reference_bone"]
-    centroid = volume.world_points(np.argwhere(labels == LABELS[bone])).mean(axis=0)
     res = residual_reduction(
-        result.poses[ref], result.poses[bone], plan["target_from_current"], centroid
+        result.poses[ref], result.poses[bone], plan["target_from_current"], centroids[bone]
     )
     return {"bone": bone, "reference_bone": ref, **res.to_json()}
