@@ -78,3 +78,30 @@ def test_refused_input_is_refused_again_and_never_cached(tmp_path):
     with pytest.raises(ValueError, match="not found"):
         bones_of_files(tmp_path / "missing.nii.gz", tmp_path / "labels.nii.gz", "ours", None,
                        FACTORS)  # fmt: skip
+
+
+def test_a_guided_frame_still_refuses_a_changed_ct_after_the_cache_holds_the_plans(tmp_path):
+    """The guide's check that the CT is the plan's holds through the cache: the plan's CT read
+    once (cached with its voxel digest), then the file changed: refused, naming it."""
+    import shutil
+
+    from pelvicnav.io.nifti import read_nifti
+    from pelvicnav.io.plan import CTReference, Plan, read_plan, write_plan
+    from pelvicnav.workflow.guide import _plan_bones
+
+    ct, labels = _files(tmp_path)
+    plan_dir = tmp_path / "plan"
+    plan_dir.mkdir()
+    shutil.copyfile(labels, plan_dir / "labels.nii.gz")
+    data, A = read_nifti(ct)
+    write_plan(plan_dir, Plan(ct=CTReference.of(ct, data, A), dislocated=("left_hip",),
+                              targets={"left_hip": np.eye(4)}))  # fmt: skip
+    plan = read_plan(plan_dir)
+    first = _plan_bones(plan, plan_dir, 6)
+    assert first.voxel_digest == plan.ct.fingerprint
+    assert _plan_bones(plan, plan_dir, 6).voxel_digest == plan.ct.fingerprint  # from the cache
+    hu = label_phantom()[0]
+    hu[30, 25, 20] += 100.0
+    _files(tmp_path, hu)
+    with pytest.raises(ValueError, match="not the CT the plan was made from"):
+        _plan_bones(plan, plan_dir, 6)

@@ -51,11 +51,15 @@ class CachedBones:
         :func:`~pelvicnav.workflow.register.ct_fingerprint` of the CT.
     centroids : dict bone -> (3,) float64
         Each bone's label centroid (world mm).
+    voxel_digest : str, optional
+        :func:`pelvicnav.io.plan.fingerprint` of the CT (what a plan records of its CT), where a
+        command asked for it.
     """
 
     models: SplatRenderer
     fingerprint: dict
     centroids: dict[str, NDArray[np.float64]]
+    voxel_digest: str | None = None
 
 
 def cache_dir() -> Path | None:
@@ -116,7 +120,8 @@ def load(key: str) -> CachedBones | None:
                 for lv, spacing in enumerate(meta["spacing"])
             )  # fmt: skip
             centroids = {b: np.asarray(c, dtype=np.float64) for b, c in meta["centroids"].items()}
-            return CachedBones(SplatRenderer(levels), meta["fingerprint"], centroids)
+            return CachedBones(SplatRenderer(levels), meta["fingerprint"], centroids,
+                               meta.get("voxel_digest"))  # fmt: skip
     except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile):
         return None  # a damaged entry is rebuilt, never trusted
 
@@ -134,7 +139,7 @@ def store(key: str, entry: CachedBones) -> None:
             arrays[f"mass_{lv}_{b}"] = m.mass
     centroids = {b: np.asarray(c).tolist() for b, c in entry.centroids.items()}
     meta = {"format": FORMAT, "key": key, "spacing": spacing, "fingerprint": entry.fingerprint,
-            "centroids": centroids}  # fmt: skip
+            "centroids": centroids, "voxel_digest": entry.voxel_digest}  # fmt: skip
     buffer = io.BytesIO()
     np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
     tmp = None

@@ -3,7 +3,8 @@
 A session folder belongs to one plan (``session.json`` holds the plan's id). Each call:
 
 1. reads the plan and its CT (refused if the CT's voxels are not the plan's), the bones' labels
-   and the frame's views;
+   and the frame's views; the CT's bone models come from the cache after the first frame
+   (:mod:`pelvicnav.workflow.bone_cache`: the same CT and label files' bytes);
 2. registers: the first frame (or a frame with another number of views, or 9 DoF) with both
    stages and the plan's dislocated bone; a later frame starts from the previous frame's poses
    and refines locally (stage 2 only, one sweep over both pyramid levels) — if that does not
@@ -28,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pelvicnav import BONES, LABELS
+from pelvicnav import BONES
 
 __all__ = ["FrameResult", "guide_frame", "read_session"]
 
@@ -104,7 +105,6 @@ def guide_frame(
     """
     from pelvicnav.io.plan import read_plan
     from pelvicnav.io.views import read_views
-    from pelvicnav.io.volume import read_ct, read_labels
 
     plan_dir = Path(plan_dir)
     plan = read_plan(plan_dir)
@@ -117,17 +117,12 @@ def guide_frame(
         )
     vs, file_dof = read_views(views)
     dof = dof if dof != 6 else file_dof
-    try:
-        hu, A = read_ct(plan.ct.path)
-    except ValueError as err:
-        raise ValueError(f"{plan_dir / 'plan.json'}: cannot read the plan's CT ({err})") from None
-    plan.ct.check(hu, A, source=str(plan.ct.path))
-    labels = read_labels(plan_dir / plan.labels, hu.shape, A)
+    bones = _plan_bones(plan, plan_dir, dof)
     frames = (record or {}).get("frames", [])
     previous = _previous(session, frames, len(vs), dof)
     started = time.perf_counter()
-    result, mode, models = _register(hu, A, labels, vs, plan, previous, seed, dof, progress)
-    residual = _residuals(result, plan, labels, A)
+    result, mode, models = _register(bones.models, vs, plan, previous, seed, dof, progress)
+    residual = _residuals(result, plan, bones.centroids)
     index = len(frames) + 1
     out = {"frame": index, "mode": mode, "views": str(Path(views).resolve()), "seed": seed,
            "degrees_of_freedom": dof, "plan": str(plan_dir.resolve()), "plan_id": plan.identity,
@@ -161,15 +156,32 @@ def _previous(session: Path, frames: list, n_views: int, dof: int) -> dict | Non
     return {b: np.asarray(last["poses"][b], dtype=np.float64) for b in BONES}
 
 
-def _register(hu, A, labels, vs, plan, previous, seed, dof, progress):
-    from pelvicnav.drr.volume import Volume
-    from pelvicnav.io.views import ViewSet
-    from pelvicnav.register.pyramid import splat_renderer
+def _plan_bones(plan, plan_dir: Path, dof: int):
+    """The plan's CT and labels as bone models (:func:`~pelvicnav.workflow.register.
+    bones_of_files`: from the cache after the first frame), refused unless the CT's voxels are
+    the plan's."""
     from pelvicnav.register.settings import RegistrationSettings
+    from pelvicnav.workflow.register import bones_of_files
+
+    factors = RegistrationSettings.for_dof(dof).factors
+    try:
+        bones, _, _ = bones_of_files(plan.ct.path, plan_dir / plan.labels, "ours", None, factors,
+                                     voxel_digest=True)  # fmt: skip
+    except ValueError as err:
+        raise ValueError(f"{plan_dir / 'plan.json'}: cannot read the plan's CT or labels "
+                         f"({err})") from None  # fmt: skip
+    if bones.voxel_digest != plan.ct.fingerprint:
+        raise ValueError(
+            f"{plan.ct.path}: this is not the CT the plan was made from (plan: {plan.ct.path}, "
+            f"fingerprint {plan.ct.fingerprint[:12]}; found {bones.voxel_digest[:12]})"
+        )
+    return bones
+
+
+def _register(models, vs, plan, previous, seed, dof, progress):
+    from pelvicnav.io.views import ViewSet
     from pelvicnav.workflow.register import track_or_register
 
-    volume = Volume(np.asarray(hu, dtype=np.float32), A)
-    models = splat_renderer(volume, labels, RegistrationSettings.for_dof(dof).factors)
     result, mode = track_or_register(
         ViewSet(tuple(vs)), models, dof=dof, seed=seed,
         dislocated=plan.dislocated[0] if len(plan.dislocated) == 1 else None,
@@ -178,14 +190,13 @@ def _register(hu, A, labels, vs, plan, previous, seed, dof, progress):
     return result, mode, models.models[-1]
 
 
-def _residuals(result, plan, labels, A) -> dict:
+def _residuals(result, plan, centroids: dict) -> dict:
     from pelvicnav.guide.residual import residual_reduction
 
     out = {}
     for bone, T in plan.targets.items():
-        ijk = np.argwhere(labels == LABELS[bone]).mean(axis=0)
-        centroid = A[:3, :3] @ ijk + A[:3, 3]
-        r = residual_reduction(result.poses[plan.reference_bone], result.poses[bone], T, centroid)
+        r = residual_reduction(result.poses[plan.reference_bone], result.poses[bone], T,
+                               centroids[bone])  # fmt: skip
         out[bone] = r.to_json()
     return out
 

@@ -200,11 +200,13 @@ def register_files(
     return record, result
 
 
-def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors):
+def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *,
+                   voxel_digest: bool = False):  # fmt: skip
     """``(CachedBones, models_seconds, cached)`` of a CT and its label map: from the cache
     (:mod:`pelvicnav.workflow.bone_cache`) when these files were read before, else read, checked
     (:func:`~pelvicnav.workflow.inputs.read_ct_and_bones`), sampled into bone models for the
-    pyramid ``factors`` and stored. ValueError naming the file on bad input."""
+    pyramid ``factors`` and stored. ``voxel_digest``: with the CT's digest as a plan records it
+    (:func:`pelvicnav.io.plan.fingerprint`). ValueError naming the file on bad input."""
     from pelvicnav.drr.volume import Volume
     from pelvicnav.io.volume import label_stats
     from pelvicnav.register.pyramid import SAMPLE_MM_PER_FACTOR, splat_renderer
@@ -220,7 +222,7 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors):
         except OSError:
             key = None  # unreadable: the reader below says why, naming the file
     hit = None if key is None else bone_cache.load(key)
-    if hit is not None:
+    if hit is not None and (hit.voxel_digest is not None or not voxel_digest):
         return hit, 0.0, True  # nothing built (hashing and loading count as reading)
     data, affine, _, lab = read_ct_and_bones(ct, labels, label_scheme, series)
     t_models = time.perf_counter()
@@ -231,7 +233,12 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors):
     t_models = time.perf_counter() - t_models
     stats = label_stats(lab, data, [LABELS[b] for b in BONES])
     centroids = {b: affine[:3, :3] @ stats[LABELS[b]].centroid_ijk + affine[:3, 3] for b in BONES}
-    entry = bone_cache.CachedBones(models, ct_fingerprint(data, affine), centroids)
+    digest = None
+    if voxel_digest:
+        from pelvicnav.io.plan import fingerprint
+
+        digest = fingerprint(data, affine)
+    entry = bone_cache.CachedBones(models, ct_fingerprint(data, affine), centroids, digest)
     if key is not None:
         bone_cache.store(key, entry)
     return entry, t_models, False
