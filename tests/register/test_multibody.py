@@ -259,3 +259,26 @@ def test_the_similarity_floor_scales_with_what_the_bones_cover_of_the_view():
     rim = np.mean(np.hypot(*np.gradient(small)) > 0)
     assert 0.0 < part < 0.5 and part == pytest.approx(2 * rim, rel=0.3)
     assert _attainable("gncc", small[None], 1) == 1.0
+
+
+def test_an_unsettled_stage_1_with_a_weak_fit_flags():
+    """Stage 1 stopped on its generation limit while improving, and the final GO is below half
+    of what the answer's DRRs can score per view: flagged (several views only)."""
+    from dataclasses import replace
+
+    from pelvicnav.register.cmaes import CMAESResult
+    from pelvicnav.register.multibody import _unsettled
+    from pelvicnav.register.result import StageResult
+
+    run = CMAESResult(x=np.zeros(6), f=-1.0, evaluations=2500, generations=25, converged=False,
+                      history=np.linspace(0.0, -1.0, 25), final_std=5.0)  # fmt: skip
+    limited = [StageResult("stage 1", [run], 1.0), StageResult("stage 2", [], 1.0)]
+    settled = [StageResult("stage 1", [replace(run, converged=True)], 1.0), limited[1]]
+    from pelvicnav.register.settings import RegistrationSettings
+
+    cfg = RegistrationSettings()
+    assert _unsettled(limited, "go", 0.876, 2.0, 2, cfg)  # seed 89 case 33: 0.44 per view
+    assert not _unsettled(limited, "go", 1.062, 2.0, 2, cfg)  # a good one that hit the limit
+    assert not _unsettled(settled, "go", 0.876, 2.0, 2, cfg)
+    assert not _unsettled(limited, "go", 0.45, 1.0, 1, cfg)  # one view: stage 1 always limited
+    assert not _unsettled(limited, "go", 0.876, 2.0, 2, replace(cfg, unsettled_similarity=0.0))

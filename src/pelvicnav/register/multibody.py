@@ -301,6 +301,15 @@ def _attainable(metric: str, drrs: NDArray, n_views: int) -> float:
     return float(sum(gradient_orientation(d, d[None])[0] for d in drrs))
 
 
+def _unsettled(stages, metric: str, similarity: float, attainable: float, n_views: int,
+               cfg) -> bool:  # fmt: skip
+    """Whether stage 1 stopped on its limit (several views) and the answer's GO is weak (see
+    ``RegistrationSettings.unsettled_similarity``)."""
+    stage1 = stages[0]
+    return (n_views > 1 and metric == "go" and stage1.name == "stage 1" and not stage1.converged
+            and similarity < cfg.unsettled_similarity * attainable)  # fmt: skip
+
+
 def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement, cfg, t_start,
            body) -> MultiBodyResult:  # fmt: skip
     """The result with its similarity (all bones, finest level) and convergence flag."""
@@ -320,11 +329,18 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
         warnings.extend(ambiguous)
     metric = cfg.pyramid.metrics[fine.index]
     per_view = cfg.min_similarity_for(metric)
-    floor = per_view * _attainable(metric, drrs[0], len(views))
+    attainable = _attainable(metric, drrs[0], len(views))
+    floor = per_view * attainable
     if similarity < floor:
         converged = False
         warnings.append(f"final similarity {similarity:.3f} is below {floor:.3f} "
                         f"({per_view} per view)")  # fmt: skip
+    elif _unsettled(stages, metric, similarity, attainable, len(views), cfg):
+        converged = False
+        warnings.append(f"stage 1 did not settle and the final similarity {similarity:.3f} is "
+                        f"below {cfg.unsettled_similarity * attainable:.3f} "
+                        f"({cfg.unsettled_similarity} per view): the bones may be misplaced "
+                        "together")  # fmt: skip
     return MultiBodyResult(
         poses=poses,
         projections=views.projections,

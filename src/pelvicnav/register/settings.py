@@ -345,6 +345,14 @@ class RegistrationSettings:
         the bones' edges cover half the view or more, as in every C-arm view above; ~0.8 in the
         340 mm radiographs of the field-of-view study), so a view the bones fill less of is not
         held to a score it cannot reach.
+    unsettled_similarity : float
+        With two or more views, a registration whose stage 1 stopped on its generation limit
+        (still improving) and whose final GO is below this per view (of what the answer's DRRs
+        can score) is flagged: stage 1 did not settle, and the answer fits no better than the
+        weakest good registrations. On three 40-case studies (seeds 61, 83, 89) stage 1 hit its
+        limit in 4 registrations: two good (GO 1.06 and 1.17 for two views) and two gross (0.71,
+        already flagged, and seed 89 case 33, the whole pelvis 23-36 mm off, unflagged at 0.876:
+        0.44 per view). Good registrations scored 0.47-0.63 per view. 0 switches it off.
     """
 
     pyramid: PyramidSettings = field(default_factory=PyramidSettings)
@@ -352,6 +360,7 @@ class RegistrationSettings:
     stage2: Stage2Settings = field(default_factory=Stage2Settings)
     research: ResearchSettings = field(default_factory=ResearchSettings)
     min_similarity: float | None = None
+    unsettled_similarity: float = 0.5
 
     def __post_init__(self) -> None:
         n = self.pyramid.n_levels
