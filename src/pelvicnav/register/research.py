@@ -149,12 +149,18 @@ def research(
                 "was found once only"
             )
         if count and len(views) > 1 and problem.settings.research.ray_mm > 0:
-            for k, x0 in enumerate(_ray_starts(problem, i, out.y, views)):
-                seeds = [run_seed(seed, RAY, k, lv, i) for lv in problem.searched]
-                x_alt, runs = _search_from(problem, i, out.y, x0, seeds,
-                                           [0.0] * len(seeds), sweep=1)  # fmt: skip
-                _judge(problem, i, x_alt, runs, r + k, seed, views, out)
+            _ray_searches(problem, i, r, seed, views, out)
     return out
+
+
+def _ray_searches(problem: Stage2Problem, i: int, r: int, seed: int, views: ViewSet,
+                  out: ResearchOutcome) -> None:  # fmt: skip
+    """A search of bone ``i`` from each of its ray starts (:func:`_ray_starts`), each judged as a
+    re-search (numbered from ``r`` for its extra pass)."""
+    for k, x0 in enumerate(_ray_starts(problem, i, out.y, views)):
+        seeds = [run_seed(seed, RAY, k, lv, i) for lv in problem.searched]
+        x_alt, runs = _search_from(problem, i, out.y, x0, seeds, [0.0] * len(seeds), sweep=1)
+        _judge(problem, i, x_alt, runs, r + k, seed, views, out)
 
 
 def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResult], r: int,

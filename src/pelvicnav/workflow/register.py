@@ -3,9 +3,11 @@
 Reads and checks the CT, the label map (any scheme; its bones must be bone and on their sides),
 the view set and an optional plan (``dislocated_bone``, ``target_from_current``, optionally
 ``reference_bone``: a hand-written JSON or ``pelvicnav plan``'s ``plan.json``), registers
-(:func:`pelvicnav.register.multibody.register_multibody`) and writes ``result.json``,
+(:func:`pelvicnav.register.multibody.register`) and writes ``result.json``,
 ``transforms/*.tfm`` beside it and, if asked, the overlays. Nothing is written when an input is
-refused.
+refused. The CT's bone models come from the cache when the same CT and label files were read
+before (:func:`bones_of_files`, :mod:`pelvicnav.workflow.bone_cache`; ``models_cached`` in
+``result.json``).
 
 Tracking: with ``init`` (a previous ``result.json`` of the same CT, bones and number of views)
 the registration starts from that frame's poses and geometry, skips stage 1 and refines locally
