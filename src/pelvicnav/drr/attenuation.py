@@ -44,22 +44,37 @@ def bone_volumes(
     ValueError
         A label map whose shape differs from the CT, or a bone with no voxel.
     """
+    lab = np.asarray(labels)
+    out = {}
+    for bone, value, box, world_from_box in _bone_boxes(ct_hu, lab, label_values):
+        mu = np.where(lab[box] == value, mu_from_hu(ct_hu.data[box]), np.float32(0.0))
+        out[bone] = Volume(mu, world_from_box)
+    return out
+
+
+def _bone_boxes(ct_hu: Volume, lab: NDArray, label_values: Mapping[str, int]):
+    """Per bone ``(bone, value, box, world_from_box)``: its label's bounding box on the CT grid
+    (one pass over the label map, :func:`pelvicnav.io.volume.label_boxes`) and the box's grid.
+
+    Raises
+    ------
+    ValueError
+        A label map whose shape differs from the CT, or a bone with no voxel.
+    """
     from pelvicnav.io.volume import label_boxes
 
-    lab = np.asarray(labels)
     if lab.shape != ct_hu.shape:
         raise ValueError(f"label map shape {lab.shape} differs from the CT's {ct_hu.shape}")
     boxes = label_boxes(lab, [v for v in label_values.values() if v != 0])
-    out = {}
+    found = []
     for bone, value in label_values.items():
         box = boxes.get(value)
         if box is None:
             raise ValueError(f"the label map has no voxel of {bone} (label {value})")
-        world_from_sub = ct_hu.world_from_ijk.copy()
-        world_from_sub[:3, 3] += ct_hu.world_from_ijk[:3, :3] @ [b.start for b in box]
-        mu = np.where(lab[box] == value, mu_from_hu(ct_hu.data[box]), np.float32(0.0))
-        out[bone] = Volume(mu, world_from_sub)
-    return out
+        world_from_box = ct_hu.world_from_ijk.copy()
+        world_from_box[:3, 3] += ct_hu.world_from_ijk[:3, :3] @ [s.start for s in box]
+        found.append((bone, value, box, world_from_box))
+    return found
 
 
 def bone_models(
@@ -113,18 +128,10 @@ def bone_point_models(
     ValueError
         A label map whose shape differs from the CT, or a bone with no voxel.
     """
-    from pelvicnav.io.volume import label_boxes
-
     lab = np.asarray(labels)
-    if lab.shape != ct_hu.shape:
-        raise ValueError(f"label map shape {lab.shape} differs from the CT's {ct_hu.shape}")
-    boxes = label_boxes(lab, [v for v in label_values.values() if v != 0])
     factors = np.array([sample_factors(ct_hu.spacing, mm) for mm in sample_mm], dtype=np.int64)
     out: tuple[dict[str, PointModel], ...] = tuple({} for _ in sample_mm)
-    for bone, value in label_values.items():
-        box = boxes.get(value)
-        if box is None:
-            raise ValueError(f"the label map has no voxel of {bone} (label {value})")
+    for bone, value, box, world_from_box in _bone_boxes(ct_hu, lab, label_values):
         extent = np.array([s.stop - s.start for s in box])
         dims = -(-extent[None] // factors)  # blocks per axis at each spacing (ceil)
         sizes = 4 * dims.prod(axis=1)
@@ -132,8 +139,6 @@ def bone_point_models(
         sums = np.zeros(int(sizes.sum()))
         _compile_bone_blocks()(ct_hu.data[box], lab[box], value, MU_WATER_PER_MM, factors, dims,
                                offsets, sums)  # fmt: skip
-        world_from_box = ct_hu.world_from_ijk.copy()
-        world_from_box[:3, 3] += ct_hu.world_from_ijk[:3, :3] @ [s.start for s in box]
         for level, models in enumerate(out):
             block = sums[offsets[level] : offsets[level] + sizes[level]].reshape(4, *dims[level])
             models[bone] = model_from_block_sums(block, world_from_box, factors[level])

@@ -305,8 +305,7 @@ def _unsettled(stages, metric: str, similarity: float, attainable: float, n_view
                cfg) -> bool:  # fmt: skip
     """Whether stage 1 stopped on its limit (several views) and the answer's GO is weak (see
     ``RegistrationSettings.unsettled_similarity``)."""
-    stage1 = stages[0]
-    return (n_views > 1 and metric == "go" and stage1.name == "stage 1" and not stage1.converged
+    return (n_views > 1 and metric == "go" and not stages[0].converged
             and similarity < cfg.unsettled_similarity * attainable)  # fmt: skip
 
 

@@ -96,8 +96,9 @@ def check_bone_labels(
     *,
     source: str,
     raw_labels: ArrayLike | None = None,
-) -> None:
-    """Refuse a label map (ours) whose bones are missing, are not bone, or are misplaced.
+) -> dict[str, NDArray[np.float64]]:
+    """Refuse a label map (ours) whose bones are missing, are not bone, or are misplaced; returns
+    each bone's label centroid (world mm), which the check computes.
 
     Parameters
     ----------
@@ -150,3 +151,4 @@ def check_bone_labels(
             f"{x['sacrum']:.0f}, {x['right_hip']:.0f} mm): labels swapped, or not ours?"
             f"{_likely_scheme(raw)}"
         )
+    return centres

@@ -22,7 +22,8 @@ def read_ct_and_bones(
     label_scheme: str = "ours",
     series: str | None = None,
 ) -> tuple[NDArray, NDArray[np.float64], NDArray, NDArray]:
-    """``(hu, world_from_ijk, raw_labels, ours)``; ValueError naming the file on bad input."""
+    """``(hu, world_from_ijk, ours, centroids)`` (each bone's label centroid, world mm);
+    ValueError naming the file on bad input."""
     from pelvicnav.io.volume import read_ct, read_labels
     from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
 
@@ -30,8 +31,8 @@ def read_ct_and_bones(
     hu, A = read_ct(ct, series=series)
     raw = read_labels(labels, hu.shape, A)
     ours = to_bone_labels(raw, scheme)
-    check_bone_labels(hu, ours, A, source=str(labels), raw_labels=raw)
-    return hu, A, raw, ours
+    centroids = check_bone_labels(hu, ours, A, source=str(labels), raw_labels=raw)
+    return hu, A, ours, centroids
 
 
 def fit_bones(ours: NDArray, world_from_ijk: NDArray, model) -> dict:
@@ -99,7 +100,7 @@ def bones_of_ct(
     started = time.perf_counter()
     if labels is not None:
         say("reading")
-        hu, A, _, ours = read_ct_and_bones(ct, labels, label_scheme, series)
+        hu, A, ours, _ = read_ct_and_bones(ct, labels, label_scheme, series)
         read_s = time.perf_counter() - started
         say("fitting the model to the labels")
         fits = fit_bones(ours, A, model or load_model())

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pelvicnav import BONES, LABELS
+from pelvicnav import BONES
 
 __all__ = [
     "bones_of_files",
@@ -210,7 +210,6 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
     pyramid ``factors`` and stored. ``voxel_digest``: with the CT's digest as a plan records it
     (:func:`pelvicnav.io.plan.fingerprint`). ValueError naming the file on bad input."""
     from pelvicnav.drr.volume import Volume
-    from pelvicnav.io.volume import label_stats
     from pelvicnav.register.pyramid import SAMPLE_MM_PER_FACTOR, splat_renderer
     from pelvicnav.workflow import bone_cache
     from pelvicnav.workflow.inputs import read_ct_and_bones
@@ -226,15 +225,13 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
     hit = None if key is None else bone_cache.load(key)
     if hit is not None and (hit.voxel_digest is not None or not voxel_digest):
         return hit, 0.0, True  # nothing built (hashing and loading count as reading)
-    data, affine, _, lab = read_ct_and_bones(ct, labels, label_scheme, series)
+    data, affine, lab, centroids = read_ct_and_bones(ct, labels, label_scheme, series)
     t_models = time.perf_counter()
     try:  # one set of bone models for registration and overlays
         models = splat_renderer(Volume(data, affine), lab, factors)  # integer HU, no float copy
     except ValueError as err:
         raise ValueError(f"{labels}: {err}") from None
     t_models = time.perf_counter() - t_models
-    stats = label_stats(lab, data, [LABELS[b] for b in BONES])
-    centroids = {b: affine[:3, :3] @ stats[LABELS[b]].centroid_ijk + affine[:3, 3] for b in BONES}
     digest = None
     if voxel_digest:
         from pelvicnav.io.plan import fingerprint
