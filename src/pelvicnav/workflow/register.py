@@ -225,7 +225,8 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
     hit = None if key is None else bone_cache.load(key)
     if hit is not None and (hit.voxel_digest is not None or not voxel_digest):
         return hit, 0.0, True  # nothing built (hashing and loading count as reading)
-    data, affine, lab, centroids = read_ct_and_bones(ct, labels, label_scheme, series)
+    data, affine, lab, centroids = read_ct_and_bones(ct, labels, label_scheme, series,
+                                                     meanwhile=_import_engine)  # fmt: skip
     t_models = time.perf_counter()
     try:  # one set of bone models for registration and overlays
         models = splat_renderer(Volume(data, affine), lab, factors)  # integer HU, no float copy
@@ -241,6 +242,12 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
     if key is not None:
         bone_cache.store(key, entry)
     return entry, t_models, False
+
+
+def _import_engine() -> None:
+    """The registration's modules (scipy.ndimage among them), imported while a CT decompresses
+    (pycma and scipy.optimize too measured no better: the imports hold the GIL)."""
+    import pelvicnav.register.multibody  # noqa: F401
 
 
 def _residual(result, plan: dict, centroids: dict) -> dict:
