@@ -52,10 +52,12 @@ def main() -> None:
         pairs = [slide(V, F, i) for i in range(len(V))]
     X = np.array([p[0] for p in pairs])
     n = len(X)
-    print("slide, median: %.2f mm / %.2f deg" % medians(X))
+    t, r = medians(X)
+    print(f"slide, median: {t:.2f} mm / {r:.2f} deg")
     print("mean slide (bias):", np.round(X.mean(axis=0), 2), "spread:", np.round(X.std(axis=0), 2))
     loo = np.array([X[i] - np.delete(X, i, axis=0).mean(axis=0) for i in range(n)])
-    print("after subtracting the others' mean: %.2f mm / %.2f deg" % medians(loo))
+    t, r = medians(loo)
+    print(f"after subtracting the others' mean: {t:.2f} mm / {r:.2f} deg")
     model = ShapeModel.fit(V[:, BONE])
     W = np.array([model.project(tf.apply(fit_transform(p[1], model.mean, scale=True), p[1]))
                   for p in pairs]) / np.sqrt(model.variances)  # fmt: skip
@@ -67,8 +69,8 @@ def main() -> None:
                 coef = np.linalg.solve(A.T @ A + lam * np.diag([0.0] + [1.0] * k),
                                        A.T @ np.delete(X, i, axis=0))  # fmt: skip
                 res.append(X[i] - np.r_[1.0, W[i, :k]] @ coef)
-            print("ridge on %2d weights, lambda %4.1f: %.2f mm / %.2f deg"
-                  % (k, lam, *medians(np.array(res))))  # fmt: skip
+            t, r = medians(np.array(res))
+            print(f"ridge on {k:2d} weights, lambda {lam:4.1f}: {t:.2f} mm / {r:.2f} deg")
 
 
 if __name__ == "__main__":
