@@ -282,3 +282,52 @@ def test_an_unsettled_stage_1_with_a_weak_fit_flags():
     assert not _unsettled(settled, "go", 0.876, 2.0, 2, cfg)
     assert not _unsettled(limited, "go", 0.45, 1.0, 1, cfg)  # one view: stage 1 always limited
     assert not _unsettled(limited, "go", 0.876, 2.0, 2, replace(cfg, unsettled_similarity=0.0))
+
+
+class _Bones:
+    """What a stage-1 body needs of a renderer: bone names, masses and centroids (CT mm)."""
+
+    bones = ("sacrum", "left_hip", "right_hip")
+
+    def mass(self, bone):
+        return 1.0
+
+    def centroid(self, bone):
+        return {"sacrum": np.array([0.0, 0.0, 0.0]), "left_hip": np.array([90.0, 0.0, -20.0]),
+                "right_hip": np.array([-90.0, 0.0, -20.0])}[bone]  # fmt: skip
+
+
+def test_stage_1_is_confirmed_by_other_starts_ending_at_its_answer():
+    """Two other stage-1 runs (from other starts) ending within 2 mm and 2 deg of the answer
+    confirm it (then it is not flagged as unsettled); one, or runs ending farther, do not."""
+    from pelvicnav.register.multibody import _confirmed, _Run
+    from pelvicnav.register.result import StageResult
+    from pelvicnav.register.settings import RegistrationSettings
+    from pelvicnav.register.stage1 import Stage1Outcome
+
+    cfg = RegistrationSettings()
+    run = _Run(None, None, _Bones(), cfg, 0, None, "left_hip", 0.0)
+    init = {b: np.eye(4) for b in _Bones.bones}
+    centre = np.array([0.0, 0.0, -10.0])  # the sacrum and right hip's centre
+    answer = pj.six_dof_pose(np.array([5.0, -3.0, 2.0, 1.0, 2.0, -1.0]), center=centre)
+
+    def ended(turn, params):
+        """A run started from ``init`` turned by ``turn`` that ended at ``answer`` moved by
+        ``params`` ([t mm, r deg] about the centre)."""
+        start = {b: turn @ T for b, T in init.items()}
+        final = pj.six_dof_pose(np.asarray(params, float), center=centre) @ answer
+        stage = StageResult("stage 1", [], 0.0)
+        return start, Stage1Outcome(final @ tf.invert(start["sacrum"]), None, stage)
+
+    first = ended(np.eye(4), np.zeros(6))
+    turned = [pj.six_dof_pose(np.array([0, 0, 0, a, b, 0.0]), center=centre)
+              for a, b in ((20, 0), (-20, 0), (0, 20))]  # fmt: skip
+    near = [ended(turned[0], [0.5, 0, 0.3, 0, 0.4, 0]), ended(turned[1], [0, -1.2, 0, 0.5, 0, 0])]
+    far = ended(turned[2], [12.0, 0, 0, 0, 0, 0])
+    twisted = ended(turned[2], [0.5, 0, 0, 0, 0, 5.0])  # close at the centre, turned 5 deg
+    assert _confirmed(run, first, [first, *near])
+    assert not _confirmed(run, first, [first, near[0], far, twisted])
+    assert _confirmed(run, first, [first, *near, far])
+    assert not _confirmed(run, first, [first])
+    assert not _confirmed(replace(run, cfg=replace(cfg, unsettled_confirmations=0)), first,
+                          [first, *near])  # fmt: skip

@@ -130,8 +130,9 @@ def register(
     if guessed and rescue:  # a start far off: every start the rescue would try, tried now
         starts += _turned(run, init)
     seeds = [seed] + [run_seed(seed, RESCUE, k) for k in range(len(starts) - 1)]
-    start, s1 = _best_stage1(run, starts, seeds)
-    result = _finish(run, start, s1)
+    tried = _stage1_runs(run, starts, seeds)
+    start, s1 = min(tried, key=lambda pair: _f(pair[1]))
+    result = _finish(run, start, s1, _confirmed(run, (start, s1), tried))
     if result.converged or guessed or not rescue:
         return result
     return _rescue(run, init, s1, result)
@@ -154,8 +155,9 @@ class _Run:
         return stage1_body(self.renderer, self.cfg.stage1.body, init, self.dislocated)
 
 
-def _finish(run: _Run, init: dict, s1) -> MultiBodyResult:
-    """Stage 2 and the judgement from a stage-1 answer started at ``init``."""
+def _finish(run: _Run, init: dict, s1, confirmed: bool = False) -> MultiBodyResult:
+    """Stage 2 and the judgement from a stage-1 answer started at ``init`` (``confirmed``: other
+    stage-1 starts ended there too, see :func:`_confirmed`)."""
     views, levels, cfg = run.views, run.levels, run.cfg
     if s1.projections is not None:  # 9 DoF: later levels and the result use the refined geometry
         views = views.with_projections(s1.projections)
@@ -168,7 +170,7 @@ def _finish(run: _Run, init: dict, s1) -> MultiBodyResult:
         poses, disagreement, warnings = s2.poses, s2.disagreement, s2.warnings
         stages.append(s2.result)
     return _judge(views, levels[-1], run.renderer, poses, stages, warnings, disagreement, cfg,
-                  run.t_start, run.body(init).name)  # fmt: skip
+                  run.t_start, run.body(init).name, confirmed)  # fmt: skip
 
 
 def _f(s1) -> float:
@@ -188,28 +190,52 @@ def _turned(run: _Run, init: dict) -> list[dict]:
     return [{b: T @ P for b, P in init.items()} for T in turns]
 
 
-def _best_stage1(run: _Run, starts: list[dict], seeds: list[int]):
-    """Stage 1 from each start (with its seed); returns the start and stage-1 outcome whose
-    answer scores best. When the first guess was taken, the starts are the guess, the start
-    before it and that start turned out of plane: a guess can move a body turned out of plane
-    further off (starts turned 30 deg were guessed 50-170 mm off, and stage 1 settled in wrong
-    optima that no flag caught: 46 and 29 mm off, unflagged)."""
-    best = None
-    for k, (start, seed) in enumerate(zip(starts, seeds, strict=True)):
-        s1 = run_stage1(run.views, run.levels, run.renderer, run.body(start), run.cfg, seed,
-                        run.progress if k == 0 else None)  # fmt: skip
-        if best is None or _f(s1) < _f(best[1]):
-            best = (start, s1)
-    return best
+def _stage1_runs(run: _Run, starts: list[dict], seeds: list[int]) -> list[tuple]:
+    """``(start, stage-1 outcome)`` from each start (with its seed). When the first guess was
+    taken, the starts are the guess, the start before it and that start turned out of plane: a
+    guess can move a body turned out of plane further off (starts turned 30 deg were guessed
+    50-170 mm off, and stage 1 settled in wrong optima that no flag caught: 46 and 29 mm off,
+    unflagged); the best-scoring answer goes on."""
+    return [(start, run_stage1(run.views, run.levels, run.renderer, run.body(start), run.cfg,
+                               seed, run.progress if k == 0 else None))
+            for k, (start, seed) in enumerate(zip(starts, seeds, strict=True))]  # fmt: skip
+
+
+def _body_pose(run: _Run, start: dict, s1) -> NDArray[np.float64]:
+    """Where stage 1 put the body: its first bone's ``world_from_ct``."""
+    return s1.delta @ run.body(start).start
+
+
+def _confirmed(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
+    """Whether at least ``unsettled_confirmations`` of the other stage-1 runs in ``tried`` ended
+    where ``answer`` (start, outcome) did: within ``unsettled_confirm_mm`` at the body's centre
+    and as many degrees. Then stage 1 counts as settled whatever its generation limit."""
+    cfg = run.cfg
+    T = _body_pose(run, *answer)
+    centre = run.body(answer[0]).centre[None]
+    agree = 0
+    for start, s1 in tried:
+        if s1 is answer[1]:
+            continue
+        U = _body_pose(run, start, s1)
+        mm = np.linalg.norm(tf.apply(U, centre) - tf.apply(T, centre))
+        deg = np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(U[:3, :3] @ T[:3, :3].T)))
+        agree += bool(mm <= cfg.unsettled_confirm_mm and deg <= cfg.unsettled_confirm_mm)
+    return cfg.unsettled_confirmations > 0 and agree >= cfg.unsettled_confirmations
 
 
 def _rescue(run: _Run, init: dict, s1, result: MultiBodyResult) -> MultiBodyResult:
     """A flagged registration (whose first guess was not taken) tried again from its start
-    turned out of plane (:func:`_turned`). The best stage-1 answer, if better than ``s1`` (the
-    first attempt's), goes on to stage 2, and the better-scoring result is returned."""
+    turned out of plane (:func:`_turned`). When enough of these restarts end where ``s1`` (the
+    first attempt's stage 1) did, that answer is confirmed and judged again as settled (stage 2
+    runs again: the same poses). Otherwise the best stage-1 answer, if better than ``s1``, goes
+    on to stage 2, and the better-scoring result is returned."""
     turned = _turned(run, init)
     seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
-    start, best = _best_stage1(run, turned, seeds)
+    tried = _stage1_runs(run, turned, seeds)
+    if _confirmed(run, (init, s1), tried):  # the restarts found stage 1's answer: judge again
+        return _finish(run, init, s1, confirmed=True)
+    start, best = min(tried, key=lambda pair: _f(pair[1]))
     if _f(best) >= _f(s1):
         return result
     again = _finish(run, start, best)
@@ -310,8 +336,9 @@ def _unsettled(stages, metric: str, similarity: float, attainable: float, n_view
 
 
 def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement, cfg, t_start,
-           body) -> MultiBodyResult:  # fmt: skip
-    """The result with its similarity (all bones, finest level) and convergence flag."""
+           body, confirmed: bool = False) -> MultiBodyResult:  # fmt: skip
+    """The result with its similarity (all bones, finest level) and convergence flag
+    (``confirmed``: stage 1's answer was reached from other starts too; not unsettled)."""
     bones = renderer.bones
     stack = np.stack([poses[b] for b in bones])[None]
     drrs = renderer.render(fine.index, bones, stack, fine.projections, fine.shape)
@@ -334,7 +361,7 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
         converged = False
         warnings.append(f"final similarity {similarity:.3f} is below {floor:.3f} "
                         f"({per_view} per view)")  # fmt: skip
-    elif _unsettled(stages, metric, similarity, attainable, len(views), cfg):
+    elif not confirmed and _unsettled(stages, metric, similarity, attainable, len(views), cfg):
         converged = False
         warnings.append(f"stage 1 did not settle and the final similarity {similarity:.3f} is "
                         f"below {cfg.unsettled_similarity * attainable:.3f} "
