@@ -262,26 +262,20 @@ def test_the_similarity_floor_scales_with_what_the_bones_cover_of_the_view():
 
 
 def test_an_unsettled_stage_1_with_a_weak_fit_flags():
-    """Stage 1 stopped on its generation limit while improving, and the final GO is below half
-    of what the answer's DRRs can score per view: flagged (several views only)."""
+    """Stage 1 did not settle (:func:`_settled`) and the final GO is below half of what the
+    answer's DRRs can score per view: flagged (several views only)."""
     from dataclasses import replace
 
-    from pelvicnav.register.cmaes import CMAESResult
     from pelvicnav.register.multibody import _unsettled
-    from pelvicnav.register.result import StageResult
-
-    run = CMAESResult(x=np.zeros(6), f=-1.0, evaluations=2500, generations=25, converged=False,
-                      history=np.linspace(0.0, -1.0, 25), final_std=5.0)  # fmt: skip
-    limited = [StageResult("stage 1", [run], 1.0), StageResult("stage 2", [], 1.0)]
-    settled = [StageResult("stage 1", [replace(run, converged=True)], 1.0), limited[1]]
     from pelvicnav.register.settings import RegistrationSettings
 
     cfg = RegistrationSettings()
-    assert _unsettled(limited, "go", 0.876, 2.0, 2, cfg)  # seed 89 case 33: 0.44 per view
-    assert not _unsettled(limited, "go", 1.062, 2.0, 2, cfg)  # a good one that hit the limit
-    assert not _unsettled(settled, "go", 0.876, 2.0, 2, cfg)
-    assert not _unsettled(limited, "go", 0.45, 1.0, 1, cfg)  # one view: stage 1 always limited
-    assert not _unsettled(limited, "go", 0.876, 2.0, 2, replace(cfg, unsettled_similarity=0.0))
+    assert _unsettled(False, "go", 0.876, 2.0, 2, cfg)  # seed 89 case 33: 0.44 per view
+    assert _unsettled(False, "go", 0.826, 2.0, 2, cfg)  # seed 107 case 37: 0.41 per view
+    assert not _unsettled(False, "go", 1.062, 2.0, 2, cfg)  # a good one that hit the limit
+    assert not _unsettled(True, "go", 0.876, 2.0, 2, cfg)
+    assert not _unsettled(False, "go", 0.45, 1.0, 1, cfg)  # one view: stage 1 always limited
+    assert not _unsettled(False, "go", 0.876, 2.0, 2, replace(cfg, unsettled_similarity=0.0))
 
 
 class _Bones:
@@ -297,10 +291,13 @@ class _Bones:
                 "right_hip": np.array([-90.0, 0.0, -20.0])}[bone]  # fmt: skip
 
 
-def test_stage_1_is_confirmed_by_other_starts_ending_at_its_answer():
+def test_stage_1_settles_when_other_starts_end_at_its_answer():
     """Two other stage-1 runs (from other starts) ending within 2 mm and 2 deg of the answer
-    confirm it (then it is not flagged as unsettled); one, or runs ending farther, do not."""
-    from pelvicnav.register.multibody import _confirmed, _Run
+    settle it even if it hit its generation limit; one settles an answer that stopped on a
+    tolerance; several starts with none there leave it unsettled (seed 107 case 37: the others
+    ended 10.6-117 mm away); a single run settles when it stopped on a tolerance."""
+    from pelvicnav.register.cmaes import CMAESResult
+    from pelvicnav.register.multibody import _Run, _settled
     from pelvicnav.register.result import StageResult
     from pelvicnav.register.settings import RegistrationSettings
     from pelvicnav.register.stage1 import Stage1Outcome
@@ -311,23 +308,28 @@ def test_stage_1_is_confirmed_by_other_starts_ending_at_its_answer():
     centre = np.array([0.0, 0.0, -10.0])  # the sacrum and right hip's centre
     answer = pj.six_dof_pose(np.array([5.0, -3.0, 2.0, 1.0, 2.0, -1.0]), center=centre)
 
-    def ended(turn, params):
+    def ended(turn, params, converged=True):
         """A run started from ``init`` turned by ``turn`` that ended at ``answer`` moved by
         ``params`` ([t mm, r deg] about the centre)."""
         start = {b: turn @ T for b, T in init.items()}
         final = pj.six_dof_pose(np.asarray(params, float), center=centre) @ answer
-        stage = StageResult("stage 1", [], 0.0)
+        cma = CMAESResult(x=np.zeros(6), f=-1.0, evaluations=2500, generations=25,
+                          converged=converged, history=np.linspace(0.0, -1.0, 25),
+                          final_std=0.1 if converged else 5.0)  # fmt: skip
+        stage = StageResult("stage 1", [cma], 0.0)
         return start, Stage1Outcome(final @ tf.invert(start["sacrum"]), None, stage)
 
-    first = ended(np.eye(4), np.zeros(6))
+    first, limited = ended(np.eye(4), np.zeros(6)), ended(np.eye(4), np.zeros(6), False)
     turned = [pj.six_dof_pose(np.array([0, 0, 0, a, b, 0.0]), center=centre)
               for a, b in ((20, 0), (-20, 0), (0, 20))]  # fmt: skip
     near = [ended(turned[0], [0.5, 0, 0.3, 0, 0.4, 0]), ended(turned[1], [0, -1.2, 0, 0.5, 0, 0])]
     far = ended(turned[2], [12.0, 0, 0, 0, 0, 0])
     twisted = ended(turned[2], [0.5, 0, 0, 0, 0, 5.0])  # close at the centre, turned 5 deg
-    assert _confirmed(run, first, [first, *near])
-    assert not _confirmed(run, first, [first, near[0], far, twisted])
-    assert _confirmed(run, first, [first, *near, far])
-    assert not _confirmed(run, first, [first])
-    assert not _confirmed(replace(run, cfg=replace(cfg, unsettled_confirmations=0)), first,
-                          [first, *near])  # fmt: skip
+    assert _settled(run, limited, [limited, *near, far])  # two there: settled despite the limit
+    assert not _settled(run, limited, [limited, near[0], far, twisted])
+    assert not _settled(run, limited, [limited])
+    assert _settled(run, first, [first])  # a lone run that stopped on a tolerance
+    assert _settled(run, first, [first, near[0], far])
+    assert not _settled(run, first, [first, far, twisted])  # several starts, none agree
+    off = replace(run, cfg=replace(cfg, unsettled_confirmations=0))
+    assert not _settled(off, limited, [limited, *near]) and _settled(off, first, [first, far])

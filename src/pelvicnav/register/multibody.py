@@ -132,7 +132,7 @@ def register(
     seeds = [seed] + [run_seed(seed, RESCUE, k) for k in range(len(starts) - 1)]
     tried = _stage1_runs(run, starts, seeds)
     start, s1 = min(tried, key=lambda pair: _f(pair[1]))
-    result = _finish(run, start, s1, _confirmed(run, (start, s1), tried))
+    result = _finish(run, start, s1, _settled(run, (start, s1), tried))
     if result.converged or guessed or not rescue:
         return result
     return _rescue(run, init, s1, result)
@@ -155,9 +155,9 @@ class _Run:
         return stage1_body(self.renderer, self.cfg.stage1.body, init, self.dislocated)
 
 
-def _finish(run: _Run, init: dict, s1, confirmed: bool = False) -> MultiBodyResult:
-    """Stage 2 and the judgement from a stage-1 answer started at ``init`` (``confirmed``: other
-    stage-1 starts ended there too, see :func:`_confirmed`)."""
+def _finish(run: _Run, init: dict, s1, settled: bool) -> MultiBodyResult:
+    """Stage 2 and the judgement from a stage-1 answer started at ``init`` (``settled``: see
+    :func:`_settled`)."""
     views, levels, cfg = run.views, run.levels, run.cfg
     if s1.projections is not None:  # 9 DoF: later levels and the result use the refined geometry
         views = views.with_projections(s1.projections)
@@ -170,7 +170,7 @@ def _finish(run: _Run, init: dict, s1, confirmed: bool = False) -> MultiBodyResu
         poses, disagreement, warnings = s2.poses, s2.disagreement, s2.warnings
         stages.append(s2.result)
     return _judge(views, levels[-1], run.renderer, poses, stages, warnings, disagreement, cfg,
-                  run.t_start, run.body(init).name, confirmed)  # fmt: skip
+                  run.t_start, run.body(init).name, settled)  # fmt: skip
 
 
 def _f(s1) -> float:
@@ -206,10 +206,21 @@ def _body_pose(run: _Run, start: dict, s1) -> NDArray[np.float64]:
     return s1.delta @ run.body(start).start
 
 
-def _confirmed(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
-    """Whether at least ``unsettled_confirmations`` of the other stage-1 runs in ``tried`` ended
-    where ``answer`` (start, outcome) did: within ``unsettled_confirm_mm`` at the body's centre
-    and as many degrees. Then stage 1 counts as settled whatever its generation limit."""
+def _settled(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
+    """Whether stage 1's ``answer`` (start, outcome), the best of the runs ``tried``, stands:
+    at least ``unsettled_confirmations`` of the other runs ended where it did (within
+    ``unsettled_confirm_mm`` at the body's centre and as many degrees); or it stopped on a
+    tolerance and was the only run, or another one ended there too. With 0 confirmations, a run
+    that stopped on a tolerance is settled (agreement is not counted)."""
+    need = run.cfg.unsettled_confirmations
+    if need == 0:
+        return answer[1].result.converged
+    agree = _agreeing(run, answer, tried)
+    return agree >= need or (answer[1].result.converged and (len(tried) == 1 or agree >= 1))
+
+
+def _agreeing(run: _Run, answer: tuple, tried: list[tuple]) -> int:
+    """How many runs in ``tried`` other than ``answer`` ended where it did."""
     cfg = run.cfg
     T = _body_pose(run, *answer)
     centre = run.body(answer[0]).centre[None]
@@ -221,7 +232,7 @@ def _confirmed(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
         mm = np.linalg.norm(tf.apply(U, centre) - tf.apply(T, centre))
         deg = np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(U[:3, :3] @ T[:3, :3].T)))
         agree += bool(mm <= cfg.unsettled_confirm_mm and deg <= cfg.unsettled_confirm_mm)
-    return cfg.unsettled_confirmations > 0 and agree >= cfg.unsettled_confirmations
+    return agree
 
 
 def _rescue(run: _Run, init: dict, s1, result: MultiBodyResult) -> MultiBodyResult:
@@ -233,12 +244,12 @@ def _rescue(run: _Run, init: dict, s1, result: MultiBodyResult) -> MultiBodyResu
     turned = _turned(run, init)
     seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
     tried = _stage1_runs(run, turned, seeds)
-    if _confirmed(run, (init, s1), tried):  # the restarts found stage 1's answer: judge again
-        return _finish(run, init, s1, confirmed=True)
+    if not s1.result.converged and _settled(run, (init, s1), [(init, s1), *tried]):
+        return _finish(run, init, s1, True)  # the restarts found stage 1's answer: judge again
     start, best = min(tried, key=lambda pair: _f(pair[1]))
     if _f(best) >= _f(s1):
         return result
-    again = _finish(run, start, best)
+    again = _finish(run, start, best, _settled(run, (start, best), [(init, s1), *tried]))
     if again.similarity <= result.similarity:
         return result
     note = (f"rescued: the first attempt was flagged (similarity {result.similarity:.3f}); "
@@ -327,18 +338,18 @@ def _attainable(metric: str, drrs: NDArray, n_views: int) -> float:
     return float(sum(gradient_orientation(d, d[None])[0] for d in drrs))
 
 
-def _unsettled(stages, metric: str, similarity: float, attainable: float, n_views: int,
+def _unsettled(settled: bool, metric: str, similarity: float, attainable: float, n_views: int,
                cfg) -> bool:  # fmt: skip
-    """Whether stage 1 stopped on its limit (several views) and the answer's GO is weak (see
+    """Whether stage 1 did not settle (several views) and the answer's GO is weak (see
     ``RegistrationSettings.unsettled_similarity``)."""
-    return (n_views > 1 and metric == "go" and not stages[0].converged
+    return (n_views > 1 and metric == "go" and not settled
             and similarity < cfg.unsettled_similarity * attainable)  # fmt: skip
 
 
 def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement, cfg, t_start,
-           body, confirmed: bool = False) -> MultiBodyResult:  # fmt: skip
+           body, settled: bool) -> MultiBodyResult:  # fmt: skip
     """The result with its similarity (all bones, finest level) and convergence flag
-    (``confirmed``: stage 1's answer was reached from other starts too; not unsettled)."""
+    (``settled``: whether stage 1's answer stands, :func:`_settled`)."""
     bones = renderer.bones
     stack = np.stack([poses[b] for b in bones])[None]
     drrs = renderer.render(fine.index, bones, stack, fine.projections, fine.shape)
@@ -361,7 +372,7 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
         converged = False
         warnings.append(f"final similarity {similarity:.3f} is below {floor:.3f} "
                         f"({per_view} per view)")  # fmt: skip
-    elif not confirmed and _unsettled(stages, metric, similarity, attainable, len(views), cfg):
+    elif _unsettled(settled, metric, similarity, attainable, len(views), cfg):
         converged = False
         warnings.append(f"stage 1 did not settle and the final similarity {similarity:.3f} is "
                         f"below {cfg.unsettled_similarity * attainable:.3f} "
