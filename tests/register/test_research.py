@@ -13,10 +13,10 @@ from pelvicnav.register.settings import RegistrationSettings
 BONES = ("sacrum", "left_hip", "right_hip")
 
 
-def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0):
+def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0):
     """Re-search with each search returning (f_alt, d_mm) from ``outcomes`` (re-searches first,
-    then the searches from ``rays`` ray starts); the answer scores -1.0 (objectives are
-    minimised)."""
+    then the searches from ``rays`` ray starts and ``turns`` turn starts, all logged "ray"); the
+    answer scores -1.0 (objectives are minimised)."""
     calls = []
 
     def search(problem, i, y, r, seed):
@@ -33,6 +33,7 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0):
     monkeypatch.setattr(rs, "_search_from_stage1", search)
     monkeypatch.setattr(rs, "_search_from", from_ray)
     monkeypatch.setattr(rs, "_ray_starts", lambda problem, i, y, views: [np.zeros(6)] * rays)
+    monkeypatch.setattr(rs, "_turn_starts", lambda problem, i, y: [np.zeros(6)] * turns)
     monkeypatch.setattr(rs, "_compare", compare)
     monkeypatch.setattr(rs, "_repass", lambda problem, y, r, seed, out: y)
     problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
@@ -84,11 +85,56 @@ def test_an_equally_good_answer_along_a_ray_flags_the_ambiguity(monkeypatch):
     assert len(out.warnings) == 1 and "do not pin its pose down" in out.warnings[0]
 
 
-def test_no_ray_probe_with_one_view_or_without_re_searches(monkeypatch):
-    _, calls = _run(monkeypatch, [(-0.9, 1.0)], n_views=1, rays=1)
+def test_no_ray_or_turn_probe_with_one_view_or_without_re_searches(monkeypatch):
+    _, calls = _run(monkeypatch, [(-0.9, 1.0)], n_views=1, rays=1, turns=1)
     assert calls == [0]
-    _, calls = _run(monkeypatch, [], count=0, rays=1)
+    _, calls = _run(monkeypatch, [], count=0, rays=1, turns=1)
     assert calls == []
+
+
+def test_a_better_turned_answer_takes_over_after_the_rays(monkeypatch):
+    out, calls = _run(monkeypatch, [(-0.99, 0.5), (-0.9, 25.0), (-1.07, 5.0)], rays=1, turns=1)
+    assert calls == [0, "ray", "ray"] and not out.warnings
+    assert np.all(out.y[6:12] == 3.0)  # the turned search's answer
+
+
+def test_the_turn_probe_finds_a_basin_turned_about_an_axis():
+    """A deeper well at the bone turned 20 deg about z through its centroid and shifted 4 mm in
+    x: that turn and shift is the one start; with the well shallower than the answer by more
+    than the margin, or the turn outside the search box, none."""
+    from pelvicnav.geometry import transforms as tf
+
+    x = np.array([2.0, -1.0, 0.5, 3.0, 0.0, 1.0])  # the answer's [t mm, r deg]
+    turned = np.rad2deg(tf.rotvec_from_matrix(
+        tf.matrix_from_rotvec(np.deg2rad([0.0, 0.0, 20.0])) @ tf.matrix_from_rotvec(
+            np.deg2rad(x[3:]))))  # fmt: skip
+    well = np.concatenate([x[:3] + np.array([4.0, 0.0, 0.0]), turned])
+
+    def objective_with(depth):
+        def objective(X):
+            d2 = np.sum((X - x) ** 2, axis=1)
+            e2 = np.sum((X - well) ** 2, axis=1)
+            return -np.exp(-d2 / 20.0) - depth * np.exp(-e2 / 20.0)
+
+        return objective
+
+    y = np.zeros(18)
+    y[6:12] = x
+    box = np.array([25.0] * 3 + [25.0] * 3)
+    problem = SimpleNamespace(
+        settings=RegistrationSettings(),
+        searched=[0],
+        objective=lambda i, y, lv: objective_with(1.2),
+        box=lambda i: box,
+    )
+    starts = rs._turn_starts(problem, 1, y)
+    assert len(starts) == 1
+    np.testing.assert_allclose(starts[0], well, atol=1e-9)
+    problem.objective = lambda i, y, lv: objective_with(0.9)  # worse than the answer by 0.1
+    assert rs._turn_starts(problem, 1, y) == []
+    problem.objective = lambda i, y, lv: objective_with(1.2)
+    problem.box = lambda i: np.array([25.0] * 3 + [12.0] * 3)  # the turn's r_z is 21 deg
+    assert rs._turn_starts(problem, 1, y) == []
 
 
 def test_the_ray_probe_finds_the_other_optimum_on_a_views_ray():

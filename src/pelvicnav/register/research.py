@@ -11,7 +11,9 @@ With two or more views, the bone is then probed along each view's ray (from the 
 its centroid): a move along it keeps the bone's outline in that view, so a bone that the other
 views show little of can sit in two places on it that score alike, and random re-searches from
 the stage-1 pose find the other one by chance only (:func:`_ray_starts`; see
-:class:`~pelvicnav.register.settings.ResearchSettings` ``ray_mm``).
+:class:`~pelvicnav.register.settings.ResearchSettings` ``ray_mm``). And it is turned by 20 degrees
+either way about each axis through its centroid: a hip can also keep to a basin turned that far
+from the truth (:func:`_turn_starts`, ``turn_deg``).
 """
 
 from __future__ import annotations
@@ -22,10 +24,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pelvicnav.geometry import projection as pj
+from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.errors import pose_disagreement
 from pelvicnav.register.cmaes import CMAESResult
-from pelvicnav.register.seeds import RAY, REPASS, RESEARCH, run_seed
+from pelvicnav.register.seeds import RAY, REPASS, RESEARCH, TURN, run_seed
 from pelvicnav.register.stage2 import Stage2Problem, with_block
 
 __all__ = ["ResearchOutcome", "research"]
@@ -96,6 +99,32 @@ def _ray_starts(problem: Stage2Problem, i: int, y: NDArray, views: ViewSet) -> l
     return starts
 
 
+def _turn_starts(problem: Stage2Problem, i: int, y: NDArray) -> list[NDArray]:
+    """Bone ``i``'s parameters turned by ``turn_deg`` either way about each world axis through its
+    centroid, each turn shifted by the best of a 3 x 3 x 3 grid ``turn_shift_mm`` apart: the
+    best of them inside the search box if it scores within ``ray_margin`` of where the bone is
+    (coarsest level), else none."""
+    rs = problem.settings.research
+    objective = problem.objective(i, y, problem.searched[0])
+    x = y[6 * i : 6 * i + 6]
+    f0 = float(objective(x[None])[0])
+    R = tf.matrix_from_rotvec(np.deg2rad(x[3:]))
+    g = rs.turn_shift_mm * np.array([-1.0, 0.0, 1.0])
+    shifts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    X = []
+    for turn in np.concatenate([np.eye(3), -np.eye(3)]) * np.deg2rad(rs.turn_deg):
+        # about the centroid (centre + t): the translation stays, the rotations compose
+        r = np.rad2deg(tf.rotvec_from_matrix(tf.matrix_from_rotvec(turn) @ R))
+        X.extend(np.concatenate([x[:3] + s, r]) for s in shifts)
+    X = np.array(X)
+    X = X[np.all(np.abs(X) <= problem.box(i), axis=1)]
+    if not len(X):
+        return []
+    f = objective(X)
+    k = int(np.argmin(f))
+    return [X[k]] if f[k] <= f0 + rs.ray_margin else []
+
+
 def _repass(problem: Stage2Problem, y: NDArray, r: int, seed: int, out: ResearchOutcome):
     """One more fine-level pass of every bone (sweep order) over the corrected DRRs."""
     if problem.is_gradient(problem.fine):
@@ -148,19 +177,31 @@ def research(
                 f"{problem.settings.research.retry_mm:g} mm away and scored worse: the answer "
                 "was found once only"
             )
-        if count and len(views) > 1 and problem.settings.research.ray_mm > 0:
-            _ray_searches(problem, i, r, seed, views, out)
+        if count and len(views) > 1:
+            _probe_searches(problem, i, r, seed, views, out)
     return out
 
 
-def _ray_searches(problem: Stage2Problem, i: int, r: int, seed: int, views: ViewSet,
-                  out: ResearchOutcome) -> None:  # fmt: skip
-    """A search of bone ``i`` from each of its ray starts (:func:`_ray_starts`), each judged as a
-    re-search (numbered from ``r`` for its extra pass)."""
-    for k, x0 in enumerate(_ray_starts(problem, i, out.y, views)):
-        seeds = [run_seed(seed, RAY, k, lv, i) for lv in problem.searched]
-        x_alt, runs = _search_from(problem, i, out.y, x0, seeds, [0.0] * len(seeds), sweep=1)
-        _judge(problem, i, x_alt, runs, r + k, seed, views, out)
+def _probe_searches(problem: Stage2Problem, i: int, r: int, seed: int, views: ViewSet,
+                    out: ResearchOutcome) -> None:  # fmt: skip
+    """A search of bone ``i`` from each of its ray starts (:func:`_ray_starts`), then from its
+    turn start (:func:`_turn_starts`), each judged as a re-search (numbered from ``r`` for its
+    extra pass)."""
+    rs = problem.settings.research
+    rays = _ray_starts(problem, i, out.y, views) if rs.ray_mm > 0 else []
+    for k, x0 in enumerate(rays):
+        _probe_search(problem, i, x0, [RAY, k], r + k, seed, views, out)
+    if rs.turn_deg > 0:
+        for x0 in _turn_starts(problem, i, out.y):
+            _probe_search(problem, i, x0, [TURN], r + len(rays), seed, views, out)
+
+
+def _probe_search(problem: Stage2Problem, i: int, x0: NDArray, path: list[int], r: int,
+                  seed: int, views: ViewSet, out: ResearchOutcome) -> None:  # fmt: skip
+    """A search of bone ``i`` from ``x0`` (seeds under ``path``), judged as re-search ``r``."""
+    seeds = [run_seed(seed, *path, lv, i) for lv in problem.searched]
+    x_alt, runs = _search_from(problem, i, out.y, x0, seeds, [0.0] * len(seeds), sweep=1)
+    _judge(problem, i, x_alt, runs, r, seed, views, out)
 
 
 def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResult], r: int,
