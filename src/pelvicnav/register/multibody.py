@@ -131,7 +131,7 @@ def register(
         starts += _turned(run, init)
     seeds = [seed] + [run_seed(seed, RESCUE, k) for k in range(len(starts) - 1)]
     tried = _stage1_runs(run, starts, seeds)
-    start, s1 = min(tried, key=lambda pair: _f(pair[1]))
+    start, s1 = _best(tried)
     result = _finish(run, start, s1, _settled(run, (start, s1), tried))
     if result.converged or guessed or not rescue:
         return result
@@ -201,6 +201,12 @@ def _stage1_runs(run: _Run, starts: list[dict], seeds: list[int]) -> list[tuple]
             for k, (start, seed) in enumerate(zip(starts, seeds, strict=True))]  # fmt: skip
 
 
+def _best(tried: list[tuple]) -> tuple:
+    """The ``(start, outcome)`` whose stage-1 answer scores best (the only one when tracking,
+    whose stage 1 runs no level)."""
+    return tried[0] if len(tried) == 1 else min(tried, key=lambda pair: _f(pair[1]))
+
+
 def _body_pose(run: _Run, start: dict, s1) -> NDArray[np.float64]:
     """Where stage 1 put the body: its first bone's ``world_from_ct``."""
     return s1.delta @ run.body(start).start
@@ -246,7 +252,7 @@ def _rescue(run: _Run, init: dict, s1, result: MultiBodyResult) -> MultiBodyResu
     tried = _stage1_runs(run, turned, seeds)
     if not s1.result.converged and _settled(run, (init, s1), [(init, s1), *tried]):
         return _finish(run, init, s1, True)  # the restarts found stage 1's answer: judge again
-    start, best = min(tried, key=lambda pair: _f(pair[1]))
+    start, best = _best(tried)
     if _f(best) >= _f(s1):
         return result
     again = _finish(run, start, best, _settled(run, (start, best), [(init, s1), *tried]))
