@@ -165,3 +165,12 @@ def test_the_ray_probe_finds_the_other_optimum_on_a_views_ray():
     # the other place outside the bone's search box (a CMA-ES start must lie in it): none
     problem.box = lambda i: np.array([15.0] * 3 + [12.0] * 3)
     assert rs._ray_starts(problem, 1, np.zeros(18), SimpleNamespace(projections=views)) == []
+
+
+def test_negative_probe_and_settling_settings_are_refused():
+    from pelvicnav.register.settings import ResearchSettings
+
+    with pytest.raises(ValueError, match="turn_deg"):
+        ResearchSettings(turn_deg=-20.0)
+    with pytest.raises(ValueError, match="unsettled_confirm"):
+        RegistrationSettings(unsettled_confirmations=-1)

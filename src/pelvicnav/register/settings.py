@@ -337,6 +337,9 @@ class ResearchSettings:
             raise ValueError(
                 f"coarse_rotation_prior must be >= 0, got {self.coarse_rotation_prior}"
             )
+        if not (self.turn_deg >= 0 and self.turn_shift_mm >= 0):
+            raise ValueError(f"turn_deg and turn_shift_mm must be >= 0, got {self.turn_deg} and "
+                             f"{self.turn_shift_mm}")  # fmt: skip
 
     def count(self, n_views: int) -> int:
         """Re-searches to run with ``n_views`` views."""
@@ -391,6 +394,8 @@ class RegistrationSettings:
     unsettled_confirmations: int = 2
 
     def __post_init__(self) -> None:
+        if not (self.unsettled_confirm_mm >= 0 and self.unsettled_confirmations >= 0):
+            raise ValueError("unsettled_confirm_mm and unsettled_confirmations must be >= 0")
         n = self.pyramid.n_levels
         per_level = {
             "stage1.populations": self.stage1.populations,
