@@ -183,7 +183,9 @@ class Stage2Settings:
         searched in turn. The attached bones moved with the pelvis in stage 1.
     gradient_iterations : int
         L-BFGS iterations of a gradient refinement (its tolerance stops it first: 15-30 on
-        simulated cases).
+        simulated cases). 100 (was 50): seed 107 case 20, good (bones within 0.61 mm), was
+        flagged for its fine-level refinement at 50 iterations still improving; it stops on its
+        tolerance at 55.
     gradient_tol : float
         Relative change of the objective that stops a gradient refinement at the finest level
         (10x this at coarser levels, which only bring the bones into the fine level's basin).
@@ -213,7 +215,7 @@ class Stage2Settings:
     joint_prior: float = 0.0
     fine: str = "gradient"
     attached: str = "gradient"
-    gradient_iterations: int = 50
+    gradient_iterations: int = 100
     gradient_tol: float = 1e-6
 
     def __post_init__(self) -> None:
@@ -434,7 +436,7 @@ class RegistrationSettings:
     @classmethod
     def tracking(cls) -> RegistrationSettings:
         """A later frame from the previous frame's poses: stage 2 only, every bone refined at
-        once by gradient at both pyramid levels (at most 50 iterations each), no
+        once by gradient at both pyramid levels (at most 100 iterations each), no
         re-search. On an atlas case after a 3 mm / 2 deg move of every bone: 0.38-0.47 s and
         0.15-0.34 mm (CMA-ES sweeps: 2.0-2.8 s, 0.12-0.44 mm); after 7 mm / 4 deg the same,
         where the fine level alone ended with a hip 12-13 mm off."""
