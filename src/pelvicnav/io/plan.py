@@ -68,12 +68,15 @@ class CTReference:
 
     def check(self, data: ArrayLike, world_from_ijk: ArrayLike, *, source: str) -> None:
         """Raise unless ``data`` on ``world_from_ijk`` is this CT."""
-        found = fingerprint(data, world_from_ijk)
+        self.check_fingerprint(fingerprint(data, world_from_ijk), np.shape(data), source=source)
+
+    def check_fingerprint(self, found: str, shape, *, source: str) -> None:
+        """Raise unless ``found`` (:func:`fingerprint` of a CT of ``shape``) is this CT's."""
         if found != self.fingerprint:
             raise ValueError(
                 f"{source}: this is not the CT the plan was made from (plan: {self.path}, "
                 f"{self.shape[0]} x {self.shape[1]} x {self.shape[2]}, fingerprint "
-                f"{self.fingerprint[:12]}; found {np.shape(data)}, {found[:12]})"
+                f"{self.fingerprint[:12]}; found {tuple(shape)}, {found[:12]})"
             )
 
 

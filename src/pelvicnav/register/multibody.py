@@ -132,10 +132,11 @@ def register(
     seeds = [seed] + [run_seed(seed, RESCUE, k) for k in range(len(starts) - 1)]
     tried = _stage1_runs(run, starts, seeds)
     start, s1 = _best(tried)
-    result = _finish(run, start, s1, _settled(run, (start, s1), tried))
+    attempt = _attempt(run, start, s1)
+    result = _judged(run, attempt, _settled(run, (start, s1), tried))
     if result.converged or guessed or not rescue:
         return result
-    return _rescue(run, init, s1, result)
+    return _rescue(run, init, s1, attempt, result)
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,9 +156,21 @@ class _Run:
         return stage1_body(self.renderer, self.cfg.stage1.body, init, self.dislocated)
 
 
-def _finish(run: _Run, init: dict, s1, settled: bool) -> MultiBodyResult:
-    """Stage 2 and the judgement from a stage-1 answer started at ``init`` (``settled``: see
-    :func:`_settled`)."""
+@dataclass(frozen=True, eq=False)
+class _Attempt:
+    """Stages 1 and 2 from one start, before the judgement."""
+
+    views: ViewSet  # with a 9-DoF stage 1's refined geometry
+    fine: Level
+    poses: dict[str, NDArray[np.float64]]
+    stages: list[StageResult]
+    warnings: list[str]  # stage 2's (the re-search's ambiguities)
+    disagreement: dict[str, float]
+    body: str
+
+
+def _attempt(run: _Run, init: dict, s1) -> _Attempt:
+    """Stage 2 from a stage-1 answer started at ``init``."""
     views, levels, cfg = run.views, run.levels, run.cfg
     if s1.projections is not None:  # 9 DoF: later levels and the result use the refined geometry
         views = views.with_projections(s1.projections)
@@ -169,8 +182,13 @@ def _finish(run: _Run, init: dict, s1, settled: bool) -> MultiBodyResult:
                      run.dislocated)  # fmt: skip
         poses, disagreement, warnings = s2.poses, s2.disagreement, s2.warnings
         stages.append(s2.result)
-    return _judge(views, levels[-1], run.renderer, poses, stages, warnings, disagreement, cfg,
-                  run.t_start, run.body(init).name, settled)  # fmt: skip
+    return _Attempt(views, levels[-1], poses, stages, warnings, disagreement, run.body(init).name)
+
+
+def _judged(run: _Run, a: _Attempt, settled: bool) -> MultiBodyResult:
+    """The attempt judged (``settled``: see :func:`_settled`)."""
+    return _judge(a.views, a.fine, run.renderer, a.poses, a.stages, a.warnings, a.disagreement,
+                  run.cfg, run.t_start, a.body, settled)  # fmt: skip
 
 
 def _f(s1) -> float:
@@ -241,21 +259,23 @@ def _agreeing(run: _Run, answer: tuple, tried: list[tuple]) -> int:
     return agree
 
 
-def _rescue(run: _Run, init: dict, s1, result: MultiBodyResult) -> MultiBodyResult:
+def _rescue(run: _Run, init: dict, s1, first: _Attempt,
+            result: MultiBodyResult) -> MultiBodyResult:  # fmt: skip
     """A flagged registration (whose first guess was not taken) tried again from its start
     turned out of plane (:func:`_turned`). When enough of these restarts end where ``s1`` (the
-    first attempt's stage 1) did, that answer is confirmed and judged again as settled (stage 2
-    runs again: the same poses). Otherwise the best stage-1 answer, if better than ``s1``, goes
-    on to stage 2, and the better-scoring result is returned."""
+    first attempt's stage 1) did, that answer is confirmed and the first attempt judged again
+    as settled. Otherwise the best stage-1 answer, if better than ``s1``, goes on to stage 2,
+    and the better-scoring result is returned."""
     turned = _turned(run, init)
     seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
     tried = _stage1_runs(run, turned, seeds)
     if not s1.result.converged and _settled(run, (init, s1), [(init, s1), *tried]):
-        return _finish(run, init, s1, True)  # the restarts found stage 1's answer: judge again
+        return _judged(run, first, True)  # the restarts found stage 1's answer: judge again
     start, best = _best(tried)
     if _f(best) >= _f(s1):
         return result
-    again = _finish(run, start, best, _settled(run, (start, best), [(init, s1), *tried]))
+    again = _judged(run, _attempt(run, start, best),
+                    _settled(run, (start, best), [(init, s1), *tried]))  # fmt: skip
     if again.similarity <= result.similarity:
         return result
     note = (f"rescued: the first attempt was flagged (similarity {result.similarity:.3f}); "

@@ -21,7 +21,6 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +31,7 @@ from numpy.typing import NDArray
 import pelvicnav
 from pelvicnav.drr.renderer import SplatRenderer
 from pelvicnav.drr.splat import PointModel
+from pelvicnav.io.atomic import write_bytes
 
 __all__ = ["CachedBones", "cache_dir", "cache_key", "cacheable", "load", "store"]
 
@@ -142,13 +142,8 @@ def store(key: str, entry: CachedBones) -> None:
             "centroids": centroids, "voxel_digest": entry.voxel_digest}  # fmt: skip
     buffer = io.BytesIO()
     np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
-    tmp = None
-    try:  # a unique temporary name: two workers may store the same CT at once
+    try:  # two workers may store the same CT at once: write_bytes names its temporary uniquely
         folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".bones-", suffix=".part")
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(buffer.getvalue())
-        os.replace(tmp, folder / f"bones-{key}.npz")
+        write_bytes(folder / f"bones-{key}.npz", buffer.getvalue())
     except OSError:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
+        pass  # a cache that cannot be written is skipped

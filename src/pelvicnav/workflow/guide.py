@@ -170,11 +170,8 @@ def _plan_bones(plan, plan_dir: Path, dof: int):
     except ValueError as err:
         raise ValueError(f"{plan_dir / 'plan.json'}: cannot read the plan's CT or labels "
                          f"({err})") from None  # fmt: skip
-    if bones.voxel_digest != plan.ct.fingerprint:
-        raise ValueError(
-            f"{plan.ct.path}: this is not the CT the plan was made from (plan: {plan.ct.path}, "
-            f"fingerprint {plan.ct.fingerprint[:12]}; found {bones.voxel_digest[:12]})"
-        )
+    plan.ct.check_fingerprint(bones.voxel_digest, bones.fingerprint["shape"],
+                              source=str(plan.ct.path))  # fmt: skip
     return bones
 
 
