@@ -143,10 +143,12 @@ def check_ct_hu(data: ArrayLike, *, source: str = "CT") -> None:
         )
     if hi < 200:
         raise VolumeFileError(f"{source}: no bone in this CT (no voxel at or above 200 HU)")
+    if lo < -200:
+        return  # air or padding: the rescale was applied
     sample = d.ravel(order="K")[:: max(1, d.size // 2_000_000)]  # no copy of a Fortran array
     values, counts = np.unique(sample, return_counts=True)
     varying = sample[sample != values[counts.argmax()]]  # leave out a masking constant
-    if lo >= -200 and varying.size and np.mean((varying > 900) & (varying < 1150)) > 0.2:
+    if varying.size and np.mean((varying > 900) & (varying < 1150)) > 0.2:
         raise VolumeFileError(
             f"{source}: looks like stored values without the rescale to HU (nothing below -200, "
             "soft tissue near +1024): apply the rescale intercept (usually -1024)"

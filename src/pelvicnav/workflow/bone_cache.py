@@ -33,7 +33,7 @@ from pelvicnav.drr.renderer import SplatRenderer
 from pelvicnav.drr.splat import PointModel
 from pelvicnav.io.atomic import write_bytes
 
-__all__ = ["CachedBones", "cache_dir", "cache_key", "cacheable", "load", "store"]
+__all__ = ["CachedBones", "cache_dir", "cache_key", "cacheable", "files_digest", "load", "store"]
 
 FORMAT = 1
 _CHUNK = 1 << 24
@@ -93,13 +93,22 @@ def _digest_into(h, path: Path) -> None:
                 h.update(chunk)
 
 
-def cache_key(ct: str | os.PathLike, labels: str | os.PathLike, **options) -> str:
-    """A digest of the CT and label files' bytes and of ``options`` (scheme, series, levels...)."""
+def files_digest(ct: str | os.PathLike, labels: str | os.PathLike) -> str:
+    """A digest of the CT and label files' bytes (the slow part of a key: run it in a thread,
+    hashing releases the GIL)."""
+    h = hashlib.blake2b(digest_size=20)
+    for path in (ct, labels):
+        _digest_into(h, Path(path))
+    return h.hexdigest()
+
+
+def cache_key(digest: str, **options) -> str:
+    """The key of files with :func:`files_digest` ``digest`` read with ``options`` (scheme,
+    series, levels...) by this pelvicnav."""
     h = hashlib.blake2b(digest_size=20)
     meta = {"format": FORMAT, "version": pelvicnav.__version__, **options}
     h.update(json.dumps(meta, sort_keys=True, default=str).encode())
-    for path in (ct, labels):
-        _digest_into(h, Path(path))
+    h.update(digest.encode())
     return h.hexdigest()
 
 

@@ -167,7 +167,6 @@ def register_files(
     ValueError
         Any input refused (the message names the file); nothing is written then.
     """
-    from pelvicnav.guide.overlay import write_view_overlays
     from pelvicnav.io.atomic import write_text
     from pelvicnav.io.itk_transform import write_pose_transforms
     from pelvicnav.io.views import ViewSet, read_views
@@ -193,6 +192,8 @@ def register_files(
     if the_plan is not None:
         record["residual"] = _residual(result, the_plan, bones.centroids)
     if overlay is not None:
+        from pelvicnav.guide.overlay import write_view_overlays
+
         write_view_overlays(overlay, bones.models.models[-1], vs, result, the_plan,
                             dicom=overlay_dicom)  # fmt: skip
     out = Path(out)
@@ -209,24 +210,18 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
     (:func:`~pelvicnav.workflow.inputs.read_ct_and_bones`), sampled into bone models for the
     pyramid ``factors`` and stored. ``voxel_digest``: with the CT's digest as a plan records it
     (:func:`pelvicnav.io.plan.fingerprint`). ValueError naming the file on bad input."""
-    from pelvicnav.drr.volume import Volume
-    from pelvicnav.register.pyramid import SAMPLE_MM_PER_FACTOR, splat_renderer
     from pelvicnav.workflow import bone_cache
     from pelvicnav.workflow.inputs import read_ct_and_bones
 
-    key = None
-    if bone_cache.cache_dir() is not None and all(map(bone_cache.cacheable, (ct, labels))):
-        try:
-            options = {"scheme": label_scheme, "series": series, "factors": list(factors),
-                       "sample_mm": SAMPLE_MM_PER_FACTOR}  # fmt: skip
-            key = bone_cache.cache_key(ct, labels, **options)
-        except OSError:
-            key = None  # unreadable: the reader below says why, naming the file
+    key = _cache_key_meanwhile(ct, labels, label_scheme, series, factors, _import_engine)
     hit = None if key is None else bone_cache.load(key)
     if hit is not None and (hit.voxel_digest is not None or not voxel_digest):
         return hit, 0.0, True  # nothing built (hashing and loading count as reading)
+    from pelvicnav.drr.volume import Volume
+    from pelvicnav.register.pyramid import splat_renderer
+
     data, affine, lab, centroids = read_ct_and_bones(ct, labels, label_scheme, series,
-                                                     meanwhile=_import_engine)  # fmt: skip
+                                                     meanwhile=_import_writers)  # fmt: skip
     t_models = time.perf_counter()
     try:  # one set of bone models for registration and overlays
         models = splat_renderer(Volume(data, affine), lab, factors)  # integer HU, no float copy
@@ -244,10 +239,41 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
     return entry, t_models, False
 
 
+def _cache_key_meanwhile(ct, labels, label_scheme, series, factors, meanwhile):
+    """The bone cache's key of these files (None: no cache, or a file it cannot take), hashed in
+    a thread (hashing releases the GIL: 0.1 s for a 52 MB CT) while this one runs ``meanwhile``,
+    which a registration needs either way."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pelvicnav.workflow import bone_cache
+
+    if bone_cache.cache_dir() is None or not all(map(bone_cache.cacheable, (ct, labels))):
+        meanwhile()
+        return None
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        hashing = pool.submit(bone_cache.files_digest, ct, labels)
+        meanwhile()
+        try:
+            digest = hashing.result()
+        except OSError:
+            return None  # unreadable: the reader says why, naming the file
+    from pelvicnav.register.pyramid import SAMPLE_MM_PER_FACTOR
+
+    return bone_cache.cache_key(digest, scheme=label_scheme, series=series,
+                                factors=list(factors), sample_mm=SAMPLE_MM_PER_FACTOR)  # fmt: skip
+
+
 def _import_engine() -> None:
-    """The registration's modules (scipy.ndimage among them), imported while a CT decompresses
-    (pycma and scipy.optimize too measured no better: the imports hold the GIL)."""
+    """The registration's modules (scipy.ndimage among them), imported while the CT's files are
+    hashed (pycma and scipy.optimize too measured no better: the imports hold the GIL)."""
     import pelvicnav.register.multibody  # noqa: F401
+
+
+def _import_writers() -> None:
+    """What writes the outputs (SimpleITK for the transforms), imported while a CT decompresses."""
+    import SimpleITK  # noqa: F401
+
+    import pelvicnav.io.itk_transform  # noqa: F401
 
 
 def _residual(result, plan: dict, centroids: dict) -> dict:
