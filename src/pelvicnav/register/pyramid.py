@@ -110,17 +110,20 @@ class Level:
         return Level(self.index, self.factor, Ps, self.similarities, self.shape, self.images)
 
 
-def blurred(image: NDArray, factor: int, resolution_mm: float, points: NDArray, P) -> NDArray:
-    """A radiograph at a pyramid level, blurred like the DRR (a tent of one sample spacing at the
-    median depth of ``points``, world mm; none for an exact renderer, ``resolution_mm`` 0)."""
+def blurred(
+    image: NDArray, factor: int, resolution_mm: float, points: NDArray, P, blur: float = 0.4
+) -> NDArray:
+    """A radiograph at a pyramid level, binned and blurred by a Gaussian of ``blur`` DRR sample
+    spacings (``resolution_mm`` at the median depth of ``points``, world mm; at least a pixel).
+    0.4 is the DRR's own blur (a tent of half-width r has sd r / sqrt(6)); none for an exact
+    renderer (``resolution_mm`` 0) or ``blur`` 0."""
     img = downsample_image(image, factor)
-    if resolution_mm <= 0:
+    if resolution_mm <= 0 or blur <= 0:
         return img
     K = pj.decompose_projection(P).intrinsics
     depth_mm = float(np.median(pj.depth(P, points)))
     px = resolution_mm * K[0, 0] / depth_mm  # sample spacing in pixels at the bones' depth
-    sigma = 0.4 * max(px, 1.0)  # a tent of half-width r has sd r / sqrt(6)
-    return gaussian_filter(img, sigma, mode="nearest")
+    return gaussian_filter(img, blur * max(px, 1.0), mode="nearest")
 
 
 def build_levels(views: ViewSet, renderer: Renderer, pyramid: PyramidSettings) -> list[Level]:
@@ -130,11 +133,13 @@ def build_levels(views: ViewSet, renderer: Renderer, pyramid: PyramidSettings) -
             f"the renderer has {renderer.n_levels} levels, the pyramid {pyramid.n_levels}"
         )
     levels = []
-    for lv, (f, metric) in enumerate(zip(pyramid.factors, pyramid.metrics, strict=True)):
+    for lv, (f, metric, k) in enumerate(
+        zip(pyramid.factors, pyramid.metrics, pyramid.blur, strict=True)
+    ):
         Ps = np.stack([downsample_projection(P, f) for P in views.projections])
         pts = renderer.points(renderer.bones[0], lv)[::50]
         res = renderer.resolution_mm(lv)
-        imgs = [blurred(img, f, res, pts, P) for img, P in zip(views.images, Ps, strict=True)]
+        imgs = [blurred(img, f, res, pts, P, k) for img, P in zip(views.images, Ps, strict=True)]
         sims = tuple(_METRICS[metric](i) for i in imgs)
         levels.append(Level(lv, f, Ps, sims, imgs[0].shape, tuple(imgs)))
     return levels
