@@ -118,7 +118,8 @@ def _overhead(case: dict) -> dict:
     time minus the registration's and the bone models' seconds. Cold: an empty cache of bone
     models (the CT read, checked and sampled: a CT's first command); warm: the same files again
     (the models from the cache, :mod:`pelvicnav.workflow.bone_cache`: every later frame of a
-    guidance run). Two of each, the smaller kept (the cores are shared)."""
+    guidance run). Three of each, the median reported (the smallest beside it: the cores are
+    shared)."""
     from pelvicnav.io.views import View, write_views
     from pelvicnav.io.volume import write_volume
 
@@ -139,7 +140,7 @@ def _overhead(case: dict) -> dict:
         cmd = [str(exe), "register", "--ct", str(d / "ct.nii.gz"), "--labels",
                str(d / "labels.nii.gz"), "--views", str(d / "views.json"), "--plan",
                str(d / "plan.json"), "--out", str(d / "result.json")]  # fmt: skip
-        for kind in ("cold", "cold", "warm", "warm"):
+        for kind in ("cold",) * 3 + ("warm",) * 3:
             cache = d / "cache"
             if kind == "cold":
                 shutil.rmtree(cache, ignore_errors=True)
@@ -152,7 +153,9 @@ def _overhead(case: dict) -> dict:
             assert record["models_cached"] == (kind == "warm")
             runs[kind].append({"wall_s": wall, "registration_s": reg, "models_s": models,
                                "overhead_s": wall - reg - models})  # fmt: skip
-    out = {f"{k}_overhead_s": float(min(r["overhead_s"] for r in v)) for k, v in runs.items()}
+    out = {f"{k}_overhead_s": float(np.median([r["overhead_s"] for r in v]))
+           for k, v in runs.items()}  # fmt: skip
+    out |= {f"{k}_overhead_min_s": float(min(r["overhead_s"] for r in v)) for k, v in runs.items()}
     return out | {"runs": runs, "target_s": TARGETS["overhead_s"],
                   "meets_target_cold": out["cold_overhead_s"] <= TARGETS["overhead_s"],
                   "meets_target_warm": out["warm_overhead_s"] <= TARGETS["overhead_s"]}  # fmt: skip
