@@ -227,6 +227,8 @@ def test_bad_input(phantom):
         register_multibody(ct, labels, two, settings=RegistrationSettings.for_dof(9))
     with pytest.raises(ValueError, match="dof"):
         Stage1Settings(dof=7)
+    with pytest.raises(ValueError, match="rescue_margin"):
+        Stage1Settings(rescue_margin=-0.1)
     with pytest.raises(ValueError, match="unknown dislocated bone"):
         register_multibody(ct, labels, views, settings=FAST, dislocated="femur")
     with pytest.raises(ValueError, match="metrics"):

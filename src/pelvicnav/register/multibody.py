@@ -267,7 +267,8 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt,
     first attempt's stage 1) did, that answer is confirmed and the first attempt judged again
     as settled. Otherwise the best stage-1 answer, if better than ``s1``, goes on to stage 2,
     and the better-scoring result is returned; still flagged, with the first attempt's
-    warnings, when it kept the pelvis where the first attempt had it (:func:`_moved_pelvis`)."""
+    warnings, when it kept the pelvis where the first attempt had it (:func:`_moved_pelvis`)
+    and scores less than ``rescue_margin`` better (``Stage1Settings``)."""
     turned = _turned(run, init)
     seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
     tried = _stage1_runs(run, turned, seeds)
@@ -282,12 +283,13 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt,
         return result
     note = (f"rescued: the first attempt was flagged (similarity {result.similarity:.3f}); "
             f"stage 1 from another start scored better and gave this answer")  # fmt: skip
-    moved = _moved_pelvis(run, first, again)
-    if moved:
+    clearly = again.similarity - result.similarity >= run.cfg.stage1.rescue_margin
+    if clearly or _moved_pelvis(run, first, again):
         return replace(again, warnings=(note, *again.warnings))
     same = (f"{note}, but with the same pelvis ({', '.join(_kept(run))} within "
             f"{run.cfg.research.ambiguity[0]:g} mm / {run.cfg.research.ambiguity[1]:g} deg of the "
-            "first attempt): the first attempt's doubts stand")  # fmt: skip
+            f"first attempt) and a similarity less than {run.cfg.stage1.rescue_margin:g} better: "
+            "the first attempt's doubts stand")  # fmt: skip
     return replace(again, converged=False, warnings=(same, *result.warnings, *again.warnings))
 
 
