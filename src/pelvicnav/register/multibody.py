@@ -13,9 +13,10 @@ A stage whose final runs stopped on a tolerance, collapsed or plateaued is *conv
 judges the answer: a registration whose final stage hit a generation limit while improving, whose
 final similarity is below ``min_similarity`` per view, whose re-search found an equally good other
 answer, or (one view) whose re-search ended more than ``single_view_flag_mm`` away is flagged not
-converged, never reported as a success. Stage 1's own limit is a warning only (stage 2 refines
-from its answer): with one view, 9 DoF, it was reached in every case and flagged 8 good
-registrations of 12 (atlas, seed 7).
+converged, never reported as a success; so is a rescued answer that kept the first attempt's
+pelvis and scores barely better than it (:func:`_rescue`). Stage 1's own limit is a warning
+only (stage 2 refines from its answer): with one view, 9 DoF, it was reached in every case and
+flagged 8 good registrations of 12 (atlas, seed 7).
 """
 
 from __future__ import annotations
