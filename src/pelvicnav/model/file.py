@@ -223,6 +223,8 @@ def _read(path: Path) -> PelvisModel:
     try:
         with np.load(path, allow_pickle=False) as npz:
             data = {k: npz[k] for k in npz.files}
+        for a in data.values():
+            a.setflags(write=False)
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as err:
         raise ModelFileError(f"{path}: not a readable pelvis model file ({err})") from None
     r = _Reader(path, data)

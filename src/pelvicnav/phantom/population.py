@@ -276,6 +276,8 @@ def template_bones(
     )
     right_v = left_v * np.array([-1.0, 1.0, 1.0])
     right_f = left_f[:, ::-1].copy()
+    for a in (sac_v, left_v, right_v, sac_f, left_f, right_f):
+        a.setflags(write=False)
     return (sac_v, left_v, right_v), (sac_f, left_f, right_f)
 
 
