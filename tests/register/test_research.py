@@ -62,6 +62,16 @@ def test_a_far_winning_re_search_takes_over_without_a_retry(monkeypatch):
     assert np.all(out.y[6:12] == 1.0)  # the left hip's block is the re-search's
 
 
+def test_a_far_re_search_that_wins_narrowly_needs_confirming(monkeypatch):
+    # seed 137 case 16: 14.4 mm away, better by 0.011 (confirm_margin 0.02)
+    out, calls = _run(monkeypatch, [(-1.011, 14.4), (-0.995, 0.6)])
+    assert calls == [0, 1] and not out.warnings  # the retry found the new answer again
+    assert np.all(out.y[6:12] == 1.0)  # the first re-search's answer stands
+    out, calls = _run(monkeypatch, [(-1.011, 14.4), (-0.99, 14.0)])
+    assert calls == [0, 1]
+    assert any("found once only" in w for w in out.warnings)
+
+
 def test_one_view_keeps_its_distance_rule_without_retries(monkeypatch):
     out, calls = _run(monkeypatch, [(-0.9, 5.0), (-0.95, 0.3)], n_views=1, count=2)
     assert calls == [0, 1]

@@ -173,9 +173,10 @@ def research(
             r += 1
         if far > 1:  # the answer's basin found by one search only, missed by two others
             out.warnings.append(
-                f"two re-searches of {bones[i]} ended more than "
-                f"{problem.settings.research.retry_mm:g} mm away and scored worse: the answer "
-                "was found once only"
+                f"two searches of {bones[i]} ended more than "
+                f"{problem.settings.research.retry_mm:g} mm from the answer and scored worse, "
+                f"or better by less than {problem.settings.research.confirm_margin:g}: the "
+                "answer was found once only"
             )
         if count and len(views) > 1:
             _probe_searches(problem, i, r, seed, views, out)
@@ -207,7 +208,8 @@ def _probe_search(problem: Stage2Problem, i: int, x0: NDArray, path: list[int], 
 def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResult], r: int,
            seed: int, views: ViewSet, out: ResearchOutcome) -> bool:  # fmt: skip
     """An alternative answer ``x_alt`` of bone ``i`` (found by ``runs``) against ``out``'s: the
-    better into ``out``, with its warnings; True when it lost from more than ``retry_mm`` away."""
+    better into ``out``, with its warnings; True when it ended more than ``retry_mm`` away and
+    lost, or won by less than ``confirm_margin`` (an answer that then needs confirming)."""
     rs = problem.settings.research
     bone = problem.blocks.bones[i]
     out.runs.extend(runs)
@@ -231,4 +233,5 @@ def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResul
             f"{d_deg:.1f} deg apart with similarities {-f_now:.3f} and {-f_alt:.3f} "
             f"(within {rs.ambiguity_score}): the images do not pin its pose down"
         )
-    return f_alt >= f_now and d_mm > rs.retry_mm
+    narrow = f_now - f_alt < rs.confirm_margin  # lost, or won by less than the margin
+    return narrow and d_mm > rs.retry_mm

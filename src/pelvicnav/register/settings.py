@@ -323,6 +323,13 @@ class ResearchSettings:
         away (one, ambiguous and flagged, 5.9 mm); the one gross registration (the hip 27 mm
         off in depth, unflagged) had its re-search end 13.5 mm away, scoring worse, while the
         truth scored better than the answer (GO 0.946 against 0.936).
+    confirm_margin : float
+        A re-search that ends more than ``retry_mm`` away and wins by less than this (fine-level
+        GO summed over the views) replaces the answer but counts like one that lost: it earns
+        one more re-search, and if that one ends far from it too, the new answer was found once
+        and the registration is flagged. Seed 137 case 16: the hip's sweeps and its re-search
+        ended 14.4 mm apart, the re-search winning by 0.011; its answer was 17.5 mm off,
+        unflagged (the truth scored 0.016 better than it, at both levels).
     ray_mm, ray_min_mm, ray_margin : float
         With two or more views and at least one re-search: the bone is moved along each view's
         ray (source to its centroid) up to ``ray_mm`` either way in 2 mm steps and scored at the
@@ -358,6 +365,7 @@ class ResearchSettings:
     fine: str = "cmaes"
     single_view_flag_mm: float = 4.0
     retry_mm: float = 4.0
+    confirm_margin: float = 0.02
     ray_mm: float = 40.0
     ray_min_mm: float = 6.0
     ray_margin: float = 0.01
