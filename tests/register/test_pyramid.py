@@ -19,16 +19,16 @@ def _edges(n=128):
     return gaussian_filter(img, 1.5)
 
 
-def test_blurred_bins_then_blurs_by_sample_spacing():
+def test_blurred_by_sample_spacing():
     P = pj.CArm(rows=64, cols=64, pixel_spacing=(1.0, 1.0)).projection_matrix
     points = np.zeros((10, 3))  # at the isocentre
     img = _noise()
     binned = img.reshape(32, 2, 32, 2).mean(axis=(1, 3))
-    np.testing.assert_allclose(blurred(img, 2, 3.0, points, P, blur=0.0), binned)
-    np.testing.assert_allclose(blurred(img, 2, 0.0, points, P, blur=0.4),  # exact: a pixel
+    np.testing.assert_allclose(blurred(binned, 3.0, points, P, blur=0.0), binned)
+    np.testing.assert_allclose(blurred(binned, 0.0, points, P, blur=0.4),  # exact: a pixel
                                gaussian_filter(binned, 0.4, mode="nearest"))  # fmt: skip
-    weak = blurred(img, 2, 3.0, points, P, blur=0.2)
-    strong = blurred(img, 2, 3.0, points, P, blur=0.8)
+    weak = blurred(binned, 3.0, points, P, blur=0.2)
+    strong = blurred(binned, 3.0, points, P, blur=0.8)
     assert binned.std() > weak.std() > strong.std()  # white noise: more blur, less variance
     np.testing.assert_allclose(strong.mean(), binned.mean(), atol=1e-2)
 

@@ -41,7 +41,7 @@ from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
 from pelvicnav.register.seeds import RESCUE, run_seed
 from pelvicnav.register.settings import RegistrationSettings
-from pelvicnav.register.stage1 import run_stage1, stage1_body
+from pelvicnav.register.stage1 import pelvis_bones, run_stage1, stage1_body
 from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, sweeps
 
 __all__ = ["register", "register_multibody"]
@@ -296,7 +296,7 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt,
 
 def _kept(run: _Run) -> list[str]:
     """The bones stage 1 places: all but the dislocated one (all without a plan)."""
-    return [b for b in run.renderer.bones if b != run.dislocated] or list(run.renderer.bones)
+    return list(pelvis_bones(run.renderer.bones, run.dislocated) or run.renderer.bones)
 
 
 def _moved_pelvis(run: _Run, first: _Attempt, again: MultiBodyResult) -> bool:

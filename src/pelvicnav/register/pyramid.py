@@ -112,22 +112,19 @@ class Level:
         return Level(self.index, self.factor, Ps, self.similarities, self.shape, self.images)
 
 
-def blurred(
-    image: NDArray, factor: int, resolution_mm: float, points: NDArray, P, blur: float = 0.4
-) -> NDArray:
-    """A radiograph at a pyramid level, binned and blurred by a Gaussian of ``blur`` DRR sample
-    spacings (``resolution_mm`` at the median depth of ``points``, world mm; at least a pixel,
-    a pixel for an exact renderer, ``resolution_mm`` 0). 0.4 is the DRR's own blur (a tent of
-    half-width r has sd r / sqrt(6)); ``blur`` 0: binned only."""
-    img = downsample_image(image, factor)
+def blurred(image: NDArray, resolution_mm: float, points: NDArray, P, blur: float = 0.4) -> NDArray:
+    """A binned radiograph (projection ``P`` of its level) blurred by a Gaussian of ``blur`` DRR
+    sample spacings (``resolution_mm`` at the median depth of ``points``, world mm; at least a
+    pixel, a pixel for an exact renderer, ``resolution_mm`` 0). 0.4 is the DRR's own blur (a
+    tent of half-width r has sd r / sqrt(6)); ``blur`` 0: the image itself."""
     if blur <= 0:
-        return img
+        return image
     px = 1.0
     if resolution_mm > 0:
         K = pj.decompose_projection(P).intrinsics
         depth_mm = float(np.median(pj.depth(P, points)))
         px = resolution_mm * K[0, 0] / depth_mm  # sample spacing in pixels at the bones' depth
-    return gaussian_filter(img, blur * max(px, 1.0), mode="nearest")
+    return gaussian_filter(image, blur * max(px, 1.0), mode="nearest")
 
 
 def noise_to_edge(image: ArrayLike) -> float:
@@ -173,7 +170,7 @@ def build_levels(views: ViewSet, renderer: Renderer, pyramid: PyramidSettings) -
         imgs = []
         for img, P in zip(views.images, Ps, strict=True):
             binned = downsample_image(img, f)
-            imgs.append(blurred(binned, 1, res, pts, P, level_blur(binned, k, pyramid)))
+            imgs.append(blurred(binned, res, pts, P, level_blur(binned, k, pyramid)))
         sims = tuple(_METRICS[metric](i) for i in imgs)
         levels.append(Level(lv, f, Ps, sims, imgs[0].shape, tuple(imgs)))
     return levels

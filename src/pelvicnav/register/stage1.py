@@ -65,12 +65,17 @@ class Body:
     centre: NDArray[np.float64]
 
 
+def pelvis_bones(bones: Sequence[str], dislocated: str | None) -> tuple[str, ...]:
+    """The bones of the stage-1 ``"pelvis"`` body: all but the plan's dislocated one."""
+    return tuple(b for b in bones if b != dislocated)
+
+
 def stage1_body(
     renderer: Renderer, name: str, init: dict[str, NDArray], dislocated: str | None
 ) -> Body:
     """The stage-1 body ``name`` (``"pelvis"`` or a bone) from the initial poses ``init``."""
     if name == "pelvis":
-        bones = tuple(b for b in renderer.bones if b != dislocated)
+        bones = pelvis_bones(renderer.bones, dislocated)
         masses = [renderer.mass(b) for b in bones]
         centre = sum(m * renderer.centroid(b) for m, b in zip(masses, bones, strict=True))
         centre = centre / sum(masses)
