@@ -235,6 +235,8 @@ def test_bad_input(phantom):
         PyramidSettings(metrics=("go", "mi"))
     with pytest.raises(ValueError, match="restarts"):
         ResearchSettings(restarts=-1)
+    with pytest.raises(ValueError, match="confirm_margin"):
+        ResearchSettings(confirm_margin=-0.01)
     with pytest.raises(ValueError, match="one value per pyramid level"):
         RegistrationSettings(stage1=Stage1Settings(max_generations=(25,)))
     with pytest.raises(ValueError, match="stage-2 fine must be"):

@@ -378,6 +378,8 @@ class ResearchSettings:
     def __post_init__(self) -> None:
         if self.fine not in ("cmaes", "stage2"):
             raise ValueError(f"research fine must be 'cmaes' or 'stage2', got {self.fine!r}")
+        if not self.confirm_margin >= 0:
+            raise ValueError(f"confirm_margin must be >= 0, got {self.confirm_margin}")
         if self.restarts is not None and self.restarts < 0:
             raise ValueError(f"restarts must be >= 0, got {self.restarts}")
         if not self.coarse_rotation_prior >= 0:
