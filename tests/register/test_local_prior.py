@@ -49,3 +49,26 @@ def test_joint_prior_is_zero_at_the_ct_pose_and_penalises_interpenetration():
     # a bone far from every other has no joint samples
     far = SplatRenderer(({"a": _slab(0.0), "b": _slab(100.0)},))
     assert joint_prior(far, "b") is None
+
+
+def test_joint_gap_term_is_flat_within_the_slack_then_linear_in_the_opening():
+    renderer = SplatRenderer(({"a": _slab(0.0), "b": _slab(14.0)},))
+    prior = joint_prior(renderer, "b", clearance=0.6, weight=1.0, gap_weight=0.01, gap_slack=3.0)
+    assert prior is not None
+    # b's samples lie 5-14 mm from a's nearest face (x = 9): the CT's 90th percentile
+    d_ct = prior.points[:, 0] - 9.0
+    assert np.isclose(prior.gap_ct, np.percentile(d_ct, 90.0))
+    others = {"a": np.eye(4)}
+    shifts = [0.0, 1.0, 5.0, 8.0]  # b moved away from a along x (every distance grows)
+    poses = np.stack([tf.from_params([s, 0.0, 0.0], [0.0, 0.0, 0.0]) for s in shifts])
+    p = prior.penalty(poses, others, n_views=2)
+    assert p[0] == 0.0 and p[1] == 0.0  # within the slack
+    # beyond it, 2 views x 0.01 per mm (the distance field is good to about 1 mm)
+    np.testing.assert_allclose(p[2:], [2 * 0.01 * 2.0, 2 * 0.01 * 5.0], atol=0.02)
+    assert p[3] > p[2]
+    # closing the joint costs nothing until it passes through (then the interpenetration term)
+    closer = prior.penalty(tf.from_params([-3.0, 0.0, 0.0], [0.0, 0.0, 0.0])[None], others, 2)
+    assert closer[0] == 0.0
+    # without a gap weight the term is off whatever the opening
+    off = joint_prior(renderer, "b", clearance=0.6, weight=1.0)
+    assert off.gap_weight == 0.0 and np.all(off.penalty(poses, others, n_views=2) == 0.0)

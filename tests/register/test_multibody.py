@@ -241,6 +241,10 @@ def test_bad_input(phantom):
         RegistrationSettings(stage1=Stage1Settings(max_generations=(25,)))
     with pytest.raises(ValueError, match="stage-2 fine must be"):
         Stage2Settings(fine="newton")
+    with pytest.raises(ValueError, match="joint_gap"):
+        Stage2Settings(joint_gap=(0.001, -1.0))
+    with pytest.raises(ValueError, match="joint_gap"):
+        Stage2Settings(joint_gap=(0.001,))
     with pytest.raises(ValueError, match="stage-2 attached must be"):
         Stage2Settings(attached="local")
     with pytest.raises(ValueError, match="stage-2 mode must be"):

@@ -371,8 +371,11 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
     """Stage 2 from the stage-1 poses, then the re-search (sweep mode)."""
     t0 = time.perf_counter()
     prior = None
-    if dislocated is not None and cfg.stage2.joint_prior > 0:
-        prior = joint_prior(renderer, dislocated, weight=cfg.stage2.joint_prior, seed=seed)
+    s2 = cfg.stage2
+    searching = s2.mode != "gradient"  # gradient refinement (tracking) does not read the prior
+    if dislocated is not None and searching and (s2.joint_prior > 0 or s2.joint_gap[0] > 0):
+        prior = joint_prior(renderer, dislocated, weight=s2.joint_prior, gap_weight=s2.joint_gap[0],
+                            gap_slack=s2.joint_gap[1], seed=seed)  # fmt: skip
     problem = Stage2Problem(Blocks.at(poses, renderer), renderer, levels, cfg, dislocated, prior)
     y = np.zeros(6 * len(renderer.bones))
     search = joint if cfg.stage2.mode == "joint" else sweeps
