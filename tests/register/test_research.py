@@ -13,11 +13,13 @@ from pelvicnav.register.settings import RegistrationSettings
 BONES = ("sacrum", "left_hip", "right_hip")
 
 
-def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0):
+def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None):
     """Re-search with each search returning (f_alt, d_mm) from ``outcomes`` (re-searches first,
     then the searches from ``rays`` ray starts and ``turns`` turn starts, all logged "ray"); the
-    answer scores -1.0 (objectives are minimised)."""
+    answer scores -1.0 (objectives are minimised). ``images``: the alternatives' objectives on
+    the images alone (without the joint-aware prior; default the same), the answer's -1.0."""
     calls = []
+    images = images or [f for f, _ in outcomes]
 
     def search(problem, i, y, r, seed):
         f_alt, d_mm = outcomes[len(calls)]
@@ -35,6 +37,7 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0):
     monkeypatch.setattr(rs, "_ray_starts", lambda problem, i, y, views: [np.zeros(6)] * rays)
     monkeypatch.setattr(rs, "_turn_starts", lambda problem, i, y: [np.zeros(6)] * turns)
     monkeypatch.setattr(rs, "_compare", compare)
+    monkeypatch.setattr(rs, "_images", lambda problem, i, y, x_alt: (-1.0, images[len(calls) - 1]))
     monkeypatch.setattr(rs, "_repass", lambda problem, y, r, seed, out: y)
     problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
                               settings=RegistrationSettings(), searched=[0, 1])  # fmt: skip
@@ -184,3 +187,15 @@ def test_negative_probe_and_settling_settings_are_refused():
         ResearchSettings(turn_deg=-20.0)
     with pytest.raises(ValueError, match="unsettled_confirm"):
         RegistrationSettings(unsettled_confirmations=-1)
+
+
+def test_the_flag_reads_the_images_not_the_prior(monkeypatch):
+    # seed 127 case 22: with the joint-aware prior the alternative won by 0.023, on the images
+    # alone by 0.006: it is taken (the prior chooses) but the images leave the pose open
+    out, calls = _run(monkeypatch, [(-1.023, 19.4), (-0.99, 0.5)], images=[-1.006, -0.99])
+    assert calls == [0, 1]  # a narrow far win on the images: confirmed by one more search
+    assert np.all(out.y[6:12] == 1.0)  # the alternative was taken
+    assert any("do not pin its pose down" in w for w in out.warnings)
+    # the same win on the images too: no warning, no retry
+    out, calls = _run(monkeypatch, [(-1.023, 19.4)])
+    assert calls == [0] and not out.warnings

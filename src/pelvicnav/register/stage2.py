@@ -179,9 +179,11 @@ class Stage2Problem:
         return sorted(range(len(self.blocks.bones)),
                       key=lambda j: self.blocks.bones[j] != self.dislocated)  # fmt: skip
 
-    def objective(self, i: int, y: NDArray, level: int, weight: float = 0.0):
+    def objective(self, i: int, y: NDArray, level: int, weight: float = 0.0,
+                  prior: bool = True):  # fmt: skip
         """Bone ``i``'s 6-DoF objective at ``level`` over the others' fixed DRR at ``y``, with
-        ``weight x |r|^2`` added (a rotation prior)."""
+        ``weight x |r|^2`` added (a rotation prior) and, unless not ``prior``, the joint-aware
+        prior where it is this bone's."""
         lv = self.levels[level]
         others = [j for j in range(len(self.blocks.bones)) if j != i]
         background = 0.0
@@ -191,7 +193,7 @@ class Stage2Problem:
             background = self.renderer.render(lv.index, names, current[:, others],
                                               lv.projections, lv.shape)  # fmt: skip
         poses = None
-        if self.prior is not None and self.prior.bone == self.blocks.bones[i]:
+        if prior and self.prior is not None and self.prior.bone == self.blocks.bones[i]:
             poses = {self.blocks.bones[j]: current[0, j] for j in others}
         return partial(_block_objective, problem=self, i=i, level=lv, background=background,
                        weight=weight, others=poses)  # fmt: skip
