@@ -16,11 +16,16 @@ import pytest
 from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.atlas import load_atlas
 from pelvicnav.register.multibody import register_multibody
+from pelvicnav.register.settings import RegistrationSettings, Stage2Settings
 from pelvicnav.studies.registration import (
     RegistrationStudySettings,
     registration_study,
     simulate_registration_case,
 )
+
+# the prior as session 18 measured it (off by default: the out-of-plane capture test's hip
+# ended 1.69 mm off with it, over that test's 1.5 mm)
+PRIOR = RegistrationSettings(stage2=Stage2Settings(joint_prior=0.1, joint_gap=(0.001, 20.0)))
 
 
 @pytest.mark.slow
@@ -32,7 +37,7 @@ def test_a_half_visible_hip_is_held_at_its_joints(real_atlas_path):
                                      settings=case["settings"])  # fmt: skip
     assert sim["bone"] == "left_hip"
     res = register_multibody(sim["ct"], sim["labels"], sim["views"], dislocated=sim["bone"],
-                             seed=case["registration_seed"])  # fmt: skip
+                             seed=case["registration_seed"], settings=PRIOR)  # fmt: skip
     errors = {}
     for b, c in sim["centroids"].items():
         at = [tf.apply(T, c[None])[0] for T in (res.poses[b], sim["truth"][b])]

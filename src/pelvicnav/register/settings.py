@@ -256,8 +256,8 @@ class Stage2Settings:
     max_generations: tuple[int, ...] = (30, 20)
     search_range: tuple[float, float] = (25.0, 12.0)
     range_attached: tuple[float, float] = (8.0, 4.0)
-    joint_prior: float = 0.1
-    joint_gap: tuple[float, float] = (0.001, 20.0)
+    joint_prior: float = 0.0
+    joint_gap: tuple[float, float] = (0.0, 20.0)
     fine: str = "gradient"
     attached: str = "gradient"
     gradient_iterations: int = 100
