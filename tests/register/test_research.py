@@ -37,7 +37,9 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None
     monkeypatch.setattr(rs, "_ray_starts", lambda problem, i, y, views: [np.zeros(6)] * rays)
     monkeypatch.setattr(rs, "_turn_starts", lambda problem, i, y: [np.zeros(6)] * turns)
     monkeypatch.setattr(rs, "_compare", compare)
-    monkeypatch.setattr(rs, "_images", lambda problem, i, y, x_alt: (-1.0, images[len(calls) - 1]))
+    monkeypatch.setattr(
+        rs, "_images", lambda problem, i, y, x_alt, f_now, f_alt: (-1.0, images[len(calls) - 1])
+    )
     monkeypatch.setattr(rs, "_repass", lambda problem, y, r, seed, out: y)
     problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
                               settings=RegistrationSettings(), searched=[0, 1])  # fmt: skip

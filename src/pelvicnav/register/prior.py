@@ -22,7 +22,7 @@ cases, wrong answers 8-47 mm off had 90th-percentile gaps 4-36 mm wider than the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -132,10 +132,6 @@ class JointPrior:
             d = np.minimum(d, self.fields[b](q))
         return d
 
-    def gap(self, poses: NDArray, others: dict[str, NDArray]) -> NDArray[np.float64]:
-        """(N,) mm: the ``GAP_QUANTILE`` percentile of :meth:`distances`."""
-        return np.percentile(self.distances(poses, others), GAP_QUANTILE, axis=1)
-
     def penalty(self, poses: NDArray, others: dict[str, NDArray], n_views: int) -> NDArray:
         """``K x`` (``weight x`` the fraction of joint samples inside another bone ``+
         gap_weight x`` the gap's excess over ``gap_ct + gap_slack`` in mm), for each candidate
@@ -179,12 +175,10 @@ def joint_prior(
         return None
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
-    prior = JointPrior(bone, pts[idx], trees, clearance, weight)
     if gap_weight == 0:
-        return prior
+        return JointPrior(bone, pts[idx], trees, clearance, weight)
     d = np.min([tree.query(pts[idx])[0] for tree in trees.values()], axis=0)
     gap_ct = float(np.percentile(d, GAP_QUANTILE))
-    cap = gap_ct + gap_slack + GAP_REACH_MM
-    fields = {b: DistanceField.of(p, cap) for b, p in others.items()}
-    return replace(prior, gap_weight=gap_weight, gap_slack=gap_slack, gap_ct=gap_ct,
-                   fields=fields)  # fmt: skip
+    fields = {b: DistanceField.of(p, gap_ct + gap_slack + GAP_REACH_MM) for b, p in others.items()}
+    return JointPrior(bone, pts[idx], trees, clearance, weight, gap_weight, gap_slack, gap_ct,
+                      fields)  # fmt: skip

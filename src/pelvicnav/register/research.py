@@ -139,9 +139,13 @@ def _repass(problem: Stage2Problem, y: NDArray, r: int, seed: int, out: Research
     return y
 
 
-def _images(problem: Stage2Problem, i: int, y: NDArray, x_alt: NDArray) -> tuple[float, float]:
+def _images(problem: Stage2Problem, i: int, y: NDArray, x_alt: NDArray, f_now: float,
+            f_alt: float) -> tuple[float, float]:  # fmt: skip
     """The fine-level objective of bone ``i`` at ``y`` and at ``x_alt`` on the images alone
-    (without the joint-aware prior): what the flag judges."""
+    (without the joint-aware prior): what the flag judges. Without a prior, the objective's own
+    ``f_now`` and ``f_alt``."""
+    if problem.prior is None:
+        return f_now, f_alt
     sl = slice(6 * i, 6 * i + 6)
     f = problem.objective(i, y, problem.fine, prior=False)(np.stack([y[sl], x_alt]))
     return float(f[0]), float(f[1])
@@ -225,11 +229,11 @@ def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResul
     rs = problem.settings.research
     bone = problem.blocks.bones[i]
     out.runs.extend(runs)
-    g_now, g_alt = _images(problem, i, out.y, x_alt)
     f_now, d_mm, d_deg = _compare(problem, i, out.y, x_alt, views)
     out.disagreement[bone] = max(out.disagreement.get(bone, 0.0), d_mm)
     apart = d_mm > rs.ambiguity[0] or d_deg > rs.ambiguity[1]
     f_alt = runs[-1].f
+    g_now, g_alt = _images(problem, i, out.y, x_alt, f_now, f_alt)
     if f_alt < f_now:
         out.y = with_block(out.y, i, x_alt)
         if apart:  # another basin: the other bones were fitted over a wrong DRR
