@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pelvicnav.drr.renderer import SplatRenderer
 from pelvicnav.drr.splat import PointModel
@@ -72,3 +73,20 @@ def test_joint_gap_term_is_flat_within_the_slack_then_linear_in_the_opening():
     # without a gap weight the term is off whatever the opening
     off = joint_prior(renderer, "b", clearance=0.6, weight=1.0)
     assert off.gap_weight == 0.0 and np.all(off.penalty(poses, others, n_views=2) == 0.0)
+
+
+def test_joint_measure_reads_interpenetration_and_opening_without_a_penalty():
+    # the plausibility check (ResearchSettings.joint_limits) measures with no term in the
+    # objective: the fields are built, the prior is inactive and adds nothing
+    renderer = SplatRenderer(({"a": _slab(0.0), "b": _slab(14.0)},))
+    prior = joint_prior(renderer, "b", clearance=0.6, weight=0.0, fields=20.0)
+    assert prior is not None and prior.fields and not prior.active
+    others = {"a": np.eye(4)}
+    shifts = [0.0, -8.0, 6.0, 30.0]  # at the CT, 3 mm into a, opened 6 mm, opened past the cap
+    poses = np.stack([tf.from_params([s, 0.0, 0.0], [0.0, 0.0, 0.0]) for s in shifts])
+    inside, opening = prior.measure(poses, others)
+    assert inside[0] == 0.0 and inside[2] == 0.0 and inside[1] > 0.2
+    assert abs(opening[0]) < 1e-6
+    assert opening[2] == pytest.approx(6.0, abs=1.0)  # the field is good to about 1 mm
+    assert opening[3] > 20.0  # read up to the cap (20 mm + GAP_REACH_MM past the CT's gap)
+    assert np.all(prior.penalty(poses, others, n_views=2) == 0.0)

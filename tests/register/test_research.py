@@ -13,13 +13,17 @@ from pelvicnav.register.settings import RegistrationSettings
 BONES = ("sacrum", "left_hip", "right_hip")
 
 
-def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None):
+def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None, joints=None,
+         final=None):  # fmt: skip
     """Re-search with each search returning (f_alt, d_mm) from ``outcomes`` (re-searches first,
     then the searches from ``rays`` ray starts and ``turns`` turn starts, all logged "ray"); the
     answer scores -1.0 (objectives are minimised). ``images``: the alternatives' objectives on
-    the images alone (without the joint-aware prior; default the same), the answer's -1.0."""
+    the images alone (without the joint-aware prior; default the same), the answer's -1.0.
+    ``joints``: for each search, whether (the answer, the alternative) have implausible joints
+    (default neither); ``final``: the joint warning of the kept answer (default none)."""
     calls = []
     images = images or [f for f, _ in outcomes]
+    joints = joints or [(False, False)] * len(outcomes)
 
     def search(problem, i, y, r, seed):
         f_alt, d_mm = outcomes[len(calls)]
@@ -41,8 +45,12 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None
         rs, "_images", lambda problem, i, y, x_alt, f_now, f_alt: (-1.0, images[len(calls) - 1])
     )
     monkeypatch.setattr(rs, "_repass", lambda problem, y, r, seed, out: y)
+    monkeypatch.setattr(rs, "_implausible",
+                        lambda problem, i, y, X: np.array(joints[len(calls) - 1]))  # fmt: skip
+    monkeypatch.setattr(rs, "_joint_warning", lambda problem, i, y: final)
     problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
-                              settings=RegistrationSettings(), searched=[0, 1])  # fmt: skip
+                              settings=RegistrationSettings(), searched=[0, 1],
+                              prior=None)  # fmt: skip
     out = rs.research(problem, np.zeros(18), [None] * n_views, seed=0, count=count)
     return out, calls
 
@@ -201,3 +209,42 @@ def test_the_flag_reads_the_images_not_the_prior(monkeypatch):
     # the same win on the images too: no warning, no retry
     out, calls = _run(monkeypatch, [(-1.023, 19.4)])
     assert calls == [0] and not out.warnings
+
+
+def test_an_implausible_other_answer_is_a_doubt_not_a_warning(monkeypatch):
+    # seed 151 case 6 (good, 1.5 mm): its re-search ended 3.5 mm / 13.8 deg away within 0.008
+    # GO, with the hip's joint gap 23.5 mm wider than the CT's there (limit 20): a doubt, which
+    # a second attempt can settle (register.multibody._confirmed)
+    out, calls = _run(monkeypatch, [(-0.992, 3.5)], joints=[(False, True)])
+    assert calls == [0] and not out.warnings
+    assert len(out.doubts) == 1 and "implausible" in out.doubts[0]
+    # the same outcome with a plausible other answer is a warning
+    out, calls = _run(monkeypatch, [(-0.992, 3.5)])
+    assert any("do not pin its pose down" in w for w in out.warnings) and not out.doubts
+    # far losing re-searches still earn a retry; found once against implausible answers: a doubt
+    out, calls = _run(monkeypatch, [(-0.9, 13.5), (-0.8, 9.0)], joints=[(False, True)] * 2)
+    assert calls == [0, 1] and not out.warnings
+    assert any("found once only" in d for d in out.doubts)
+    # found once against plausible answers only: a warning
+    out, calls = _run(monkeypatch, [(-0.9, 13.5), (-0.8, 9.0)], joints=[(False, False)] * 2)
+    assert any("found once only" in w for w in out.warnings) and not out.doubts
+    # a narrow winner whose predecessor was implausible: a doubt
+    out, calls = _run(monkeypatch, [(-1.005, 12.0), (-0.9, 9.0)],
+                      joints=[(True, False), (False, False)])  # fmt: skip
+    assert calls == [0, 1] and np.all(out.y[6:12] == 1.0) and not out.warnings
+    assert any("found once only" in d for d in out.doubts)
+
+
+def test_an_implausible_answer_is_flagged(monkeypatch):
+    # seed 151 case 22: the hip 24.7 mm off with its joint gap 31.8 mm wider than the CT's
+    out, _ = _run(monkeypatch, [(-0.99, 0.5)], final="left_hip ends with ...: no dislocation")
+    assert out.warnings == ["left_hip ends with ...: no dislocation"]
+
+
+def test_joint_limits_are_checked():
+    from pelvicnav.register.settings import ResearchSettings
+
+    assert ResearchSettings(joint_limits=None).joint_limits is None
+    for bad in [(0.2,), (-0.1, 20.0), (0.2, -1.0)]:
+        with pytest.raises(ValueError, match="joint_limits"):
+            ResearchSettings(joint_limits=bad)

@@ -14,7 +14,10 @@ judges the answer: a registration whose final stage hit a generation limit while
 final similarity is below ``min_similarity`` per view, whose re-search found an equally good other
 answer, or (one view) whose re-search ended more than ``single_view_flag_mm`` away is flagged not
 converged, never reported as a success; so is a rescued answer that kept the first attempt's
-pelvis and scores barely better than it (:func:`_rescue`). Stage 1's own limit is a warning
+pelvis and scores barely better than it (:func:`_rescue`), and one whose dislocated bone has
+joints no dislocation gives (closed through, or opened far past the CT's). An ambiguity whose
+other answer has such joints is a doubt: it calls the rescue, and a second attempt that ends at
+the same answer settles it (:func:`_confirmed`). Stage 1's own limit is a warning
 only (stage 2 refines from its answer): with one view, 9 DoF, it was reached in every case and
 flagged 8 good registrations of 12 (atlas, seed 7).
 """
@@ -23,7 +26,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -35,7 +38,7 @@ from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.errors import pose_disagreement
 from pelvicnav.register.initial import about, initial_pose, initial_translation
-from pelvicnav.register.prior import joint_prior
+from pelvicnav.register.prior import MEASURED_POINTS, joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
@@ -135,10 +138,11 @@ def register(
     tried = _stage1_runs(run, starts, seeds)
     start, s1 = _best(tried)
     attempt = _attempt(run, start, s1)
-    result = _judged(run, attempt, _settled(run, (start, s1), tried))
+    settled = _settled(run, (start, s1), tried)
+    result = _judged(run, attempt, settled)
     if result.converged or guessed or not rescue:
         return result
-    return _rescue(run, init, s1, attempt, result)
+    return _rescue(run, init, s1, attempt, result, settled)
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,6 +173,7 @@ class _Attempt:
     warnings: list[str]  # stage 2's (the re-search's ambiguities)
     disagreement: dict[str, float]
     body: str
+    doubts: list[str] = field(default_factory=list)  # ambiguities with an implausible other answer
 
 
 def _attempt(run: _Run, init: dict, s1) -> _Attempt:
@@ -178,19 +183,20 @@ def _attempt(run: _Run, init: dict, s1) -> _Attempt:
         views = views.with_projections(s1.projections)
         levels = [lv.with_geometry(views.projections) for lv in levels]
     poses = {b: s1.delta @ init[b] for b in run.renderer.bones}  # they share the set-up error
-    stages, warnings, disagreement = [s1.result], [], {}
+    stages, warnings, disagreement, doubts = [s1.result], [], {}, []
     if cfg.stage2.enabled:
         s2 = _stage2(views, levels, run.renderer, poses, cfg, run.seed, run.progress,
                      run.dislocated)  # fmt: skip
-        poses, disagreement, warnings = s2.poses, s2.disagreement, s2.warnings
+        poses, disagreement, warnings, doubts = s2.poses, s2.disagreement, s2.warnings, s2.doubts
         stages.append(s2.result)
-    return _Attempt(views, levels[-1], poses, stages, warnings, disagreement, run.body(init).name)
+    return _Attempt(views, levels[-1], poses, stages, warnings, disagreement, run.body(init).name,
+                    doubts)  # fmt: skip
 
 
 def _judged(run: _Run, a: _Attempt, settled: bool) -> MultiBodyResult:
-    """The attempt judged (``settled``: see :func:`_settled`)."""
-    return _judge(a.views, a.fine, run.renderer, a.poses, a.stages, a.warnings, a.disagreement,
-                  run.cfg, run.t_start, a.body, settled)  # fmt: skip
+    """The attempt judged (``settled``: see :func:`_settled`); its doubts flag it too."""
+    return _judge(a.views, a.fine, run.renderer, a.poses, a.stages, [*a.warnings, *a.doubts],
+                  a.disagreement, run.cfg, run.t_start, a.body, settled)  # fmt: skip
 
 
 def _f(s1) -> float:
@@ -261,15 +267,18 @@ def _agreeing(run: _Run, answer: tuple, tried: list[tuple]) -> int:
     return agree
 
 
-def _rescue(run: _Run, init: dict, s1, first: _Attempt,
-            result: MultiBodyResult) -> MultiBodyResult:  # fmt: skip
+def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
+            settled: bool) -> MultiBodyResult:  # fmt: skip
     """A flagged registration (whose first guess was not taken) tried again from its start
     turned out of plane (:func:`_turned`). When enough of these restarts end where ``s1`` (the
     first attempt's stage 1) did, that answer is confirmed and the first attempt judged again
     as settled. Otherwise the best stage-1 answer, if better than ``s1``, goes on to stage 2,
     and the better-scoring result is returned; still flagged, with the first attempt's
     warnings, when it kept the pelvis where the first attempt had it (:func:`_moved_pelvis`)
-    and scores less than ``rescue_margin`` better (``Stage1Settings``)."""
+    and scores less than ``rescue_margin`` better (``Stage1Settings``). A first attempt
+    flagged only by doubts (ambiguities whose other answer has implausible joints,
+    :class:`~pelvicnav.register.settings.ResearchSettings` ``joint_limits``) is confirmed when
+    the rescue's stage 2 ends where it did with no warning of its own (:func:`_confirmed`)."""
     turned = _turned(run, init)
     seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
     tried = _stage1_runs(run, turned, seeds)
@@ -278,8 +287,12 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt,
     start, best = _best(tried)
     if _f(best) >= _f(s1):
         return result
-    again = _judged(run, _attempt(run, start, best),
-                    _settled(run, (start, best), [(init, s1), *tried]))  # fmt: skip
+    second = _attempt(run, start, best)
+    settled_again = _settled(run, (start, best), [(init, s1), *tried])
+    again = _judged(run, second, settled_again)
+    confirmed = _confirmed(run, (first, settled), (second, settled_again))
+    if confirmed is not None:
+        return confirmed
     if again.similarity <= result.similarity:
         return result
     note = (f"rescued: the first attempt was flagged (similarity {result.similarity:.3f}); "
@@ -292,6 +305,42 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt,
             f"first attempt) and a similarity less than {run.cfg.stage1.rescue_margin:g} better: "
             "the first attempt's doubts stand")  # fmt: skip
     return replace(again, converged=False, warnings=(same, *result.warnings, *again.warnings))
+
+
+def _confirmed(run: _Run, first: tuple, second: tuple) -> MultiBodyResult | None:
+    """The better-scoring of two attempts ``(attempt, settled)`` judged without their doubts,
+    when the first was flagged by doubts only, neither has a warning of its own, and every bone
+    ended within the re-search's ``ambiguity`` of the first attempt's pose; else None. An
+    ambiguity whose other answer no dislocation gives (the joints closed through or opened past
+    ``joint_limits``) is a doubt, not a verdict: a second attempt from other stage-1 starts that
+    ends at the same answer with nothing else in doubt settles it (seed 151 case 6: the hip
+    1.5 mm off, flagged for an answer 3.5 mm / 13.8 deg away within 0.008 GO whose joint gap
+    was 23.5 mm wider than the CT's). When the second attempt ends elsewhere, it is judged as
+    before (seed 151 case 1: the first attempt's hip was 8.7 mm off; the rescue found the truth,
+    0.022 better)."""
+    (a, _), (b, _) = first, second
+    if not a.doubts:
+        return None
+    clean = [_judged(run, replace(x, doubts=[]), s) for x, s in (first, second)]
+    if not all(c.converged for c in clean) or not _same_answer(run, a, b):
+        return None
+    best = max(clean, key=lambda c: c.similarity)
+    note = (f"confirmed: the first attempt's doubts ({'; '.join(a.doubts)}) were settled by a "
+            "second attempt from other stage-1 starts that ended at the same answer")  # fmt: skip
+    return replace(best, warnings=(note, *best.warnings))
+
+
+def _same_answer(run: _Run, a: _Attempt, b: _Attempt) -> bool:
+    """Whether every bone of attempt ``b`` ended within the re-search's ``ambiguity`` (mm at
+    its centroid, degrees) of attempt ``a``'s pose."""
+    r, fine, lim = run.renderer, a.fine.index, run.cfg.research.ambiguity
+    for bone in r.bones:
+        mm, deg = pose_disagreement(a.poses[bone], b.poses[bone], r.points(bone, fine),
+                                    r.centroid(bone, fine), a.views.projections,
+                                    a.views.pixel_spacing)  # fmt: skip
+        if mm > lim[0] or deg > lim[1]:
+            return False
+    return True
 
 
 def _kept(run: _Run) -> list[str]:
@@ -365,6 +414,7 @@ class _Stage2Outcome:
     disagreement: dict[str, float]
     warnings: list[str]
     result: StageResult
+    doubts: list[str]
 
 
 def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> _Stage2Outcome:
@@ -373,9 +423,12 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
     prior = None
     s2 = cfg.stage2
     searching = s2.mode != "gradient"  # gradient refinement (tracking) does not read the prior
-    if dislocated is not None and searching and (s2.joint_prior > 0 or s2.joint_gap[0] > 0):
+    limits = cfg.research.joint_limits
+    active = s2.joint_prior > 0 or s2.joint_gap[0] > 0  # in the objective, else only measured
+    if dislocated is not None and searching and (active or limits is not None):
         prior = joint_prior(renderer, dislocated, weight=s2.joint_prior, gap_weight=s2.joint_gap[0],
-                            gap_slack=s2.joint_gap[1], seed=seed)  # fmt: skip
+                            gap_slack=s2.joint_gap[1], fields=limits[1] if limits else 0.0,
+                            max_points=200 if active else MEASURED_POINTS, seed=seed)  # fmt: skip
     problem = Stage2Problem(Blocks.at(poses, renderer), renderer, levels, cfg, dislocated, prior)
     y = np.zeros(6 * len(renderer.bones))
     search = joint if cfg.stage2.mode == "joint" else sweeps
@@ -384,7 +437,7 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
     again = research(problem, y, views, seed, count if problem.searched else 0)
     result = StageResult("stage 2", runs, time.perf_counter() - t0, problem.final_runs, again.runs)
     return _Stage2Outcome(problem.blocks.as_dict(again.y), again.disagreement, again.warnings,
-                          result)  # fmt: skip
+                          result, again.doubts)  # fmt: skip
 
 
 def _attainable(metric: str, drrs: NDArray, n_views: int) -> float:

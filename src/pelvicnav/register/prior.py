@@ -32,11 +32,12 @@ from scipy.spatial import cKDTree
 from pelvicnav.drr.renderer import Renderer
 from pelvicnav.geometry import transforms as tf
 
-__all__ = ["GAP_QUANTILE", "DistanceField", "JointPrior", "joint_prior"]
+__all__ = ["GAP_QUANTILE", "MEASURED_POINTS", "DistanceField", "JointPrior", "joint_prior"]
 
 GAP_QUANTILE = 90.0  # the percentile of the joint samples' distances that measures the gap
 GAP_REACH_MM = 20.0  # the gap is read up to gap_ct + gap_slack + this (the penalty saturates)
 FIELD_SPACING_MM = 3.0  # the distance fields' voxels
+MEASURED_POINTS = 2000  # joint samples when the prior only measures (a few poses per registration)
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,17 +133,30 @@ class JointPrior:
             d = np.minimum(d, self.fields[b](q))
         return d
 
+    @property
+    def active(self) -> bool:
+        """Whether the prior adds anything to the objective (else it only measures)."""
+        return self.weight > 0 or self.gap_weight > 0
+
+    def measure(self, poses: NDArray, others: dict[str, NDArray]) -> tuple[NDArray, NDArray]:
+        """For each candidate pose (N,): the fraction of joint samples nearer than ``clearance``
+        to another bone, and the gap's opening past the CT's (mm; the ``GAP_QUANTILE``
+        percentile of their distances less ``gap_ct``), from ``fields``."""
+        d = self.distances(poses, others)
+        opening = np.percentile(d, GAP_QUANTILE, axis=1) - self.gap_ct
+        return np.mean(d < self.clearance, axis=1), opening
+
     def penalty(self, poses: NDArray, others: dict[str, NDArray], n_views: int) -> NDArray:
         """``K x`` (``weight x`` the fraction of joint samples inside another bone ``+
         gap_weight x`` the gap's excess over ``gap_ct + gap_slack`` in mm), for each candidate
-        pose (N,). With the gap term on, both read the distance fields (a sample is inside
-        where its distance is under ``clearance``); else :meth:`inside`."""
-        if self.gap_weight == 0:
+        pose (N,). With the distance fields, both read them (a sample is inside where its
+        distance is under ``clearance``); else the inside fraction from the trees
+        (:meth:`inside`)."""
+        if not self.fields:
             return n_views * self.weight * self.inside(poses, others)
-        d = self.distances(poses, others)
-        excess = np.percentile(d, GAP_QUANTILE, axis=1) - self.gap_ct - self.gap_slack
-        f = self.weight * np.mean(d < self.clearance, axis=1)
-        return n_views * (f + self.gap_weight * np.maximum(excess, 0.0))
+        inside, opening = self.measure(poses, others)
+        excess = np.maximum(opening - self.gap_slack, 0.0)
+        return n_views * (self.weight * inside + self.gap_weight * excess)
 
 
 def joint_prior(
@@ -155,12 +169,15 @@ def joint_prior(
     weight: float = 0.1,
     gap_weight: float = 0.0,
     gap_slack: float = 0.0,
+    fields: float = 0.0,
     max_points: int = 200,
     seed: int = 0,
 ) -> JointPrior | None:
     """The prior of ``bone`` against the renderer's other bones, from their CT-frame samples at
     ``level`` (see :class:`JointPrior`); None if the bone has no sample within ``reach`` mm of
-    another bone."""
+    another bone. The distance fields are built when ``gap_weight`` or ``fields`` is positive,
+    reaching openings up to ``max(gap_slack, fields) + GAP_REACH_MM`` past the CT's gap
+    (``fields``: the largest opening :meth:`JointPrior.measure` must read)."""
     pts = renderer.points(bone, level)
     others = {b: renderer.points(b, level) for b in renderer.bones if b != bone}
     trees = {b: cKDTree(p) for b, p in others.items()}
@@ -175,10 +192,11 @@ def joint_prior(
         return None
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
-    if gap_weight == 0:
+    if gap_weight == 0 and fields == 0:
         return JointPrior(bone, pts[idx], trees, clearance, weight)
     d = np.min([tree.query(pts[idx])[0] for tree in trees.values()], axis=0)
     gap_ct = float(np.percentile(d, GAP_QUANTILE))
-    fields = {b: DistanceField.of(p, gap_ct + gap_slack + GAP_REACH_MM) for b, p in others.items()}
+    cap = gap_ct + max(gap_slack, fields) + GAP_REACH_MM
+    grids = {b: DistanceField.of(p, cap) for b, p in others.items()}
     return JointPrior(bone, pts[idx], trees, clearance, weight, gap_weight, gap_slack, gap_ct,
-                      fields)  # fmt: skip
+                      grids)  # fmt: skip

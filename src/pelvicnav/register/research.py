@@ -5,7 +5,10 @@ with the coarse-level rotation prior, see
 :class:`~pelvicnav.register.settings.ResearchSettings`). The better fine-level score wins; when
 the winner comes from another basin, every bone gets one more fine-level pass over the corrected
 DRRs. Two answers far apart with nearly equal similarity mean the images do not pin the bone
-down: a warning, and the registration is flagged.
+down: a warning, and the registration is flagged. The joints judge the answers too
+(:func:`_implausible`, ``ResearchSettings.joint_limits``): a kept answer whose joints no
+dislocation gives is flagged, and an ambiguity whose other answer has such joints is a doubt
+(``ResearchOutcome.doubts``) that a second attempt can settle.
 
 With two or more views, the bone is then probed along each view's ray (from the source through
 its centroid): a move along it keeps the bone's outline in that view, so a bone that the other
@@ -44,6 +47,7 @@ class ResearchOutcome:
     runs: list[CMAESResult] = field(default_factory=list)
     disagreement: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    doubts: list[str] = field(default_factory=list)  # ambiguities whose other answer is implausible
 
 
 def _search_from_stage1(
@@ -144,11 +148,49 @@ def _images(problem: Stage2Problem, i: int, y: NDArray, x_alt: NDArray, f_now: f
     """The fine-level objective of bone ``i`` at ``y`` and at ``x_alt`` on the images alone
     (without the joint-aware prior): what the flag judges. Without a prior, the objective's own
     ``f_now`` and ``f_alt``."""
-    if problem.prior is None:
+    if problem.prior is None or not problem.prior.active:
         return f_now, f_alt
     sl = slice(6 * i, 6 * i + 6)
     f = problem.objective(i, y, problem.fine, prior=False)(np.stack([y[sl], x_alt]))
     return float(f[0]), float(f[1])
+
+
+def _joints(problem: Stage2Problem, i: int, y: NDArray, X: NDArray):
+    """(inside fraction (N,), gap opening past the CT's (N,) mm) of bone ``i`` at each of the
+    parameters ``X`` (N, 6), the others at ``y`` (:meth:`~pelvicnav.register.prior.JointPrior.
+    measure`); None without the check (``joint_limits`` None, or no joint samples)."""
+    prior = problem.prior
+    if problem.settings.research.joint_limits is None or prior is None or not prior.fields:
+        return None
+    if prior.bone != problem.blocks.bones[i]:
+        return None
+    current = problem.blocks.poses(y[None])[0]
+    others = {b: current[j] for j, b in enumerate(problem.blocks.bones) if j != i}
+    return prior.measure(problem.blocks.bone_poses(i, X), others)
+
+
+def _implausible(problem: Stage2Problem, i: int, y: NDArray, X: NDArray) -> NDArray[np.bool_]:
+    """(N,) whether bone ``i`` at each of the parameters ``X`` (N, 6), the others at ``y``, has
+    joints no dislocation gives: more than ``joint_limits[0]`` of its joint samples inside
+    another bone, or the gap opened more than ``joint_limits[1]`` mm past the CT's (see
+    :class:`~pelvicnav.register.settings.ResearchSettings`). All False without the check."""
+    measured = _joints(problem, i, y, X)
+    if measured is None:
+        return np.zeros(len(X), dtype=bool)
+    lim = problem.settings.research.joint_limits
+    return (measured[0] > lim[0]) | (measured[1] > lim[1])
+
+
+def _joint_warning(problem: Stage2Problem, i: int, y: NDArray) -> str | None:
+    """A warning when bone ``i``'s answer at ``y`` has implausible joints (:func:`_implausible`)."""
+    x = y[6 * i : 6 * i + 6][None]
+    if not _implausible(problem, i, y, x)[0]:
+        return None
+    inside, opening = _joints(problem, i, y, x)
+    lim = problem.settings.research.joint_limits
+    return (f"{problem.blocks.bones[i]} ends with {inside[0]:.0%} of its joint samples inside "
+            f"another bone and its joint gap {opening[0]:.1f} mm wider than the CT's (limits "
+            f"{lim[0]:.0%}, {lim[1]:g} mm): no dislocation puts it there")  # fmt: skip
 
 
 def _compare(problem: Stage2Problem, i: int, y: NDArray, x_alt: NDArray, views: ViewSet):
@@ -177,21 +219,28 @@ def research(
     bones = problem.blocks.bones
     check = [bones.index(problem.dislocated)] if problem.dislocated else range(len(bones))
     for i in check:
-        far, r = 0, 0
+        far, contested, r = 0, 0, 0
         while r < count + min(far, 1):
             x_alt, runs = _search_from_stage1(problem, i, out.y, r, seed)
-            if _judge(problem, i, x_alt, runs, r, seed, views, out) and len(views) > 1:
+            narrow, plausible = _judge(problem, i, x_alt, runs, r, seed, views, out)
+            if narrow and len(views) > 1:
                 far += 1
+                contested += plausible
             r += 1
         if far > 1:  # the answer's basin found by one search only, missed by two others
-            out.warnings.append(
-                f"two searches of {bones[i]} ended more than "
-                f"{problem.settings.research.retry_mm:g} mm from the answer and scored worse, "
-                f"or better by less than {problem.settings.research.confirm_margin:g}: the "
-                "answer was found once only"
-            )
+            once = (f"two searches of {bones[i]} ended more than "
+                    f"{problem.settings.research.retry_mm:g} mm from the answer and scored "
+                    f"worse, or better by less than {problem.settings.research.confirm_margin:g}"
+                    ": the answer was found once only")  # fmt: skip
+            if contested == far:  # every other answer plausible
+                out.warnings.append(once)
+            else:
+                out.doubts.append(f"{once} (an implausible other answer among them)")
         if count and len(views) > 1:
             _probe_searches(problem, i, r, seed, views, out)
+        joints = _joint_warning(problem, i, out.y)
+        if joints:
+            out.warnings.append(joints)
     return out
 
 
@@ -218,11 +267,13 @@ def _probe_search(problem: Stage2Problem, i: int, x0: NDArray, path: list[int], 
 
 
 def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResult], r: int,
-           seed: int, views: ViewSet, out: ResearchOutcome) -> bool:  # fmt: skip
+           seed: int, views: ViewSet, out: ResearchOutcome) -> tuple[bool, bool]:  # fmt: skip
     """An alternative answer ``x_alt`` of bone ``i`` (found by ``runs``) against ``out``'s: the
     better into ``out`` (by the objective, the joint-aware prior included), with its warnings;
-    True when it ended more than ``retry_mm`` away and lost, or won by less than
-    ``confirm_margin`` (an answer that then needs confirming). The warnings and that test read
+    returns (whether it ended more than ``retry_mm`` away and lost, or won by less than
+    ``confirm_margin``: an answer that then needs confirming; whether the answer not kept is
+    plausible, :func:`_implausible`). An ambiguity whose other answer is implausible is a
+    doubt (``out.doubts``), not a warning. The warnings and that test read
     the images alone: the prior chooses between answers the images leave open, it does not
     close the question (seed 127 case 22: two answers 19 mm apart within 0.006 on the images,
     0.023 apart with the prior; both wrong, the truth 0.017 better than either and never found)."""
@@ -234,6 +285,8 @@ def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResul
     apart = d_mm > rs.ambiguity[0] or d_deg > rs.ambiguity[1]
     f_alt = runs[-1].f
     g_now, g_alt = _images(problem, i, out.y, x_alt, f_now, f_alt)
+    bad_now, bad_alt = _implausible(problem, i, out.y, np.stack([out.y[6 * i : 6 * i + 6], x_alt]))
+    plausible = not (bad_now if f_alt < f_now else bad_alt)  # the answer not kept
     if f_alt < f_now:
         out.y = with_block(out.y, i, x_alt)
         if apart:  # another basin: the other bones were fitted over a wrong DRR
@@ -244,11 +297,15 @@ def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResul
                 f"the re-search of {bone} ended {d_mm:.1f} mm away at the detector: "
                 "with one view its pose is not determined"
             )
-    elif apart and abs(g_alt - g_now) < rs.ambiguity_score:  # both answers fit
-        out.warnings.append(
+    elif apart and abs(g_alt - g_now) < rs.ambiguity_score:  # both answers fit the images
+        message = (
             f"two searches for {bone} from the same start ended {d_mm:.1f} mm / "
             f"{d_deg:.1f} deg apart with similarities {-g_now:.3f} and {-g_alt:.3f} "
             f"(within {rs.ambiguity_score}): the images do not pin its pose down"
         )
+        if plausible:
+            out.warnings.append(message)
+        else:
+            out.doubts.append(f"{message}; the other answer's joints are implausible")
     narrow = g_now - g_alt < rs.confirm_margin  # lost, or won by less than the margin
-    return narrow and d_mm > rs.retry_mm
+    return narrow and d_mm > rs.retry_mm, plausible

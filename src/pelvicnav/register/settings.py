@@ -373,6 +373,30 @@ class ResearchSettings:
         it. The finest level is not regularised and picks between the answers; when the
         re-search wins from another basin, every bone gets one more fine-level pass over the
         corrected DRRs. 0 switches it off.
+    joint_limits : (fraction, mm) or None
+        What a dislocation can do to the dislocated bone's joints (its joint samples, see
+        :mod:`pelvicnav.register.prior`): at most ``fraction`` of them inside another bone
+        (nearer than 1 mm to its samples), and their gap (90th percentile of their distances to
+        the other bones) at most ``mm`` wider than in the CT. Only the judgement reads it (the
+        search does not: ``Stage2Settings.joint_prior`` and ``joint_gap`` put such a prior into
+        the objective; off):
+
+        * a kept answer beyond either limit flags the registration. Study seeds 131, 139 and
+          151: the 5 gross hips (7.8-47 mm off, flagged by other rules too) opened the gap
+          24-40 mm; the good answers of seeds 137, 139 and 151 at most 16 mm, with up to 4 % of
+          their samples inside (an open-book dislocation closes the joint at its hinge);
+        * an ambiguity (or an answer found once) whose other answer is beyond the limits is a
+          *doubt*: it flags the first attempt and so calls the rescue, whose second attempt
+          from other stage-1 starts settles it when it ends at the same answer with nothing in
+          doubt (``register.multibody._confirmed``; seeds 137 case 25 and 139 case 4, good,
+          confirmed so; 139 case 4 was flagged before). A doubt the rescue does not settle
+          stays a flag.
+
+        Default (0.2, 20): the studies' dislocations open the gap by 17.3 mm at most (280
+        cases, ``scripts/measure_joint_opening.py``). The percentile is read over up to
+        ``prior.MEASURED_POINTS`` joint samples: over a random 200 of them it moved by up to
+        8 mm (seed 151 case 6: 23.5 against 15.1 mm over 2000), where a tenth of the samples
+        (the symphysis) lie apart from the rest. None switches it off.
     """
 
     restarts: int | None = None
@@ -388,6 +412,7 @@ class ResearchSettings:
     ambiguity: tuple[float, float] = (3.0, 3.0)
     ambiguity_score: float = 0.01
     coarse_rotation_prior: float = 5e-5
+    joint_limits: tuple[float, float] | None = (0.2, 20.0)
 
     def __post_init__(self) -> None:
         if self.fine not in ("cmaes", "stage2"):
@@ -403,6 +428,12 @@ class ResearchSettings:
         if not (self.turn_deg >= 0 and self.turn_shift_mm >= 0):
             raise ValueError(f"turn_deg and turn_shift_mm must be >= 0, got {self.turn_deg} and "
                              f"{self.turn_shift_mm}")  # fmt: skip
+        if self.joint_limits is not None and (
+            len(self.joint_limits) != 2 or not min(self.joint_limits) >= 0
+        ):
+            raise ValueError(
+                f"joint_limits must be (fraction, mm) >= 0 or None, got {self.joint_limits}"
+            )
 
     def count(self, n_views: int) -> int:
         """Re-searches to run with ``n_views`` views."""

@@ -193,7 +193,8 @@ class Stage2Problem:
             background = self.renderer.render(lv.index, names, current[:, others],
                                               lv.projections, lv.shape)  # fmt: skip
         poses = None
-        if prior and self.prior is not None and self.prior.bone == self.blocks.bones[i]:
+        mine = self.prior is not None and self.prior.bone == self.blocks.bones[i]
+        if prior and mine and self.prior.active:
             poses = {self.blocks.bones[j]: current[0, j] for j in others}
         return partial(_block_objective, problem=self, i=i, level=lv, background=background,
                        weight=weight, others=poses)  # fmt: skip
