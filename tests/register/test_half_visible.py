@@ -4,11 +4,14 @@ Registration study seed 131, case 30 (atlas subject 45; the real atlas, so CI on
 is 19.3 mm / 7.2 deg out of place and 24 % / 27 % of it projects inside the two views. On the
 images alone (``Stage2Settings(joint_prior=0, joint_gap=(0, 0))``, the default before session 18)
 it ended 14.4 mm off, flagged: the search never reached the truth's basin, which scores 0.015
-better. With the interpenetration term alone 0.52 mm; with the shipped defaults (both terms)
+better. With the interpenetration term alone 0.52 mm; with both terms (``PRIOR`` below)
 0.62 mm (flagged: its re-searches still find other answers) when measured.
 """
 
 from __future__ import annotations
+
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,18 +31,47 @@ from pelvicnav.studies.registration import (
 PRIOR = RegistrationSettings(stage2=Stage2Settings(joint_prior=0.1, joint_gap=(0.001, 20.0)))
 
 
-@pytest.mark.slow
-def test_a_half_visible_hip_is_held_at_its_joints(real_atlas_path):
-    study = registration_study(load_atlas(real_atlas_path),
+@pytest.fixture(scope="module")
+def case30():
+    """Seed 131, case 30, simulated once for this file (the real atlas, or skip)."""
+    path = os.environ.get("PELVICNAV_ATLAS")
+    if not path or not Path(path).is_dir():
+        pytest.skip("PELVICNAV_ATLAS is not set to a folder: the real Han atlas is not available")
+    study = registration_study(load_atlas(path),
                                RegistrationStudySettings(n_cases=31, seed=131))  # fmt: skip
     case = study.cases[30]
     sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
                                      settings=case["settings"])  # fmt: skip
     assert sim["bone"] == "left_hip"
-    res = register_multibody(sim["ct"], sim["labels"], sim["views"], dislocated=sim["bone"],
-                             seed=case["registration_seed"], settings=PRIOR)  # fmt: skip
+    return case, sim
+
+
+def _errors(res, sim) -> dict[str, float]:
     errors = {}
     for b, c in sim["centroids"].items():
         at = [tf.apply(T, c[None])[0] for T in (res.poses[b], sim["truth"][b])]
         errors[b] = float(np.linalg.norm(at[0] - at[1]))
+    return errors
+
+
+@pytest.mark.slow
+def test_a_half_visible_hip_is_held_at_its_joints(case30):
+    case, sim = case30
+    res = register_multibody(sim["ct"], sim["labels"], sim["views"], dislocated=sim["bone"],
+                             seed=case["registration_seed"], settings=PRIOR)  # fmt: skip
+    errors = _errors(res, sim)
     assert max(errors.values()) < 1.0, errors
+
+
+@pytest.mark.slow
+def test_with_the_shipped_defaults_a_wrong_half_visible_hip_is_flagged_by_its_joints(case30):
+    """Shipped defaults (the prior off, the joints judged): measured in the session-19 study, the
+    hip 14.4 mm off with its joint gap 32.4 mm wider than the CT's, flagged; its re-search's
+    other answer was implausible too (a doubt, which the joint check keeps from passing)."""
+    case, sim = case30
+    res = register_multibody(sim["ct"], sim["labels"], sim["views"], dislocated=sim["bone"],
+                             seed=case["registration_seed"])  # fmt: skip
+    errors = _errors(res, sim)
+    if max(errors.values()) > 4.0:
+        assert not res.converged, (errors, res.warnings)
+        assert any("no dislocation puts it there" in w for w in res.warnings), res.warnings

@@ -181,21 +181,18 @@ def joint_prior(
     pts = renderer.points(bone, level)
     others = {b: renderer.points(b, level) for b in renderer.bones if b != bone}
     trees = {b: cKDTree(p) for b, p in others.items()}
-    near = np.zeros(len(pts), dtype=bool)
-    clear = np.ones(len(pts), dtype=bool)
+    nearest = np.full(len(pts), np.inf)  # mm to the nearest other bone, within reach
     for tree in trees.values():
-        d, _ = tree.query(pts, distance_upper_bound=reach)
-        near |= np.isfinite(d)
-        clear &= ~(d < 2 * clearance)  # inside or touching in the CT: not a joint sample
-    idx = np.flatnonzero(near & clear)
+        nearest = np.minimum(nearest, tree.query(pts, distance_upper_bound=reach)[0])
+    # within reach, and clear of the others (inside or touching in the CT: not a joint sample)
+    idx = np.flatnonzero(np.isfinite(nearest) & (nearest >= 2 * clearance))
     if len(idx) == 0:
         return None
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
     if gap_weight == 0 and fields == 0:
         return JointPrior(bone, pts[idx], trees, clearance, weight)
-    d = np.min([tree.query(pts[idx])[0] for tree in trees.values()], axis=0)
-    gap_ct = float(np.percentile(d, GAP_QUANTILE))
+    gap_ct = float(np.percentile(nearest[idx], GAP_QUANTILE))
     cap = gap_ct + max(gap_slack, fields) + GAP_REACH_MM
     grids = {b: DistanceField.of(p, cap) for b, p in others.items()}
     return JointPrior(bone, pts[idx], trees, clearance, weight, gap_weight, gap_slack, gap_ct,

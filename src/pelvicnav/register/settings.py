@@ -240,7 +240,10 @@ class Stage2Settings:
         both on (0.1 and (0.001, 20)) the out-of-plane capture test's hip ended 1.69 mm off
         against its 1.5 mm limit, and the prior changes which basin a half-visible hip's search
         falls into (seed 127: gross hips 4 -> 1, but in one variant a hip 10 mm off unflagged);
-        measured on seed 127 only in its final form (session 18, docs/registration.md).
+        measured on seed 127 only in its final form (session 18, docs/registration.md). Seed
+        157 (session 19): 1 gross registration with both on (a hip 12.2 mm off, flagged), 0
+        without; what the joints say is read by the judgement instead
+        (``ResearchSettings.joint_limits``).
     joint_gap : (per mm, mm)
         The prior's gap term: weight (per view, per mm) and slack. The 90th percentile of the
         joint samples' distances to the other bones may exceed the CT's by the slack; each mm
