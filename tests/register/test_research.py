@@ -212,9 +212,10 @@ def test_the_flag_reads_the_images_not_the_prior(monkeypatch):
 
 
 def test_an_implausible_other_answer_is_a_doubt_not_a_warning(monkeypatch):
-    # seed 151 case 6 (good, 1.5 mm): its re-search ended 3.5 mm / 13.8 deg away within 0.008
-    # GO, with the hip's joint gap 23.5 mm wider than the CT's there (limit 20): a doubt, which
-    # a second attempt can settle (register.multibody._confirmed)
+    # a good answer with a re-search 3.5 mm / 13.8 deg away within 0.008 GO (seed 151 case 6)
+    # whose other answer opened the joint past the limit: a doubt, which a second attempt can
+    # settle (register.multibody._confirmed); read over 2000 joint samples case 6's other answer
+    # opened it 15.1 mm, plausible, and stayed a warning
     out, calls = _run(monkeypatch, [(-0.992, 3.5)], joints=[(False, True)])
     assert calls == [0] and not out.warnings
     assert len(out.doubts) == 1 and "implausible" in out.doubts[0]
