@@ -385,9 +385,9 @@ class ResearchSettings:
         the objective; off):
 
         * a kept answer beyond either limit flags the registration. Study seeds 131, 139 and
-          151: the 5 gross hips (7.8-47 mm off, flagged by other rules too) opened the gap
-          24-40 mm; the good answers of seeds 137, 139 and 151 at most 16 mm, with up to 4 % of
-          their samples inside (an open-book dislocation closes the joint at its hinge);
+          151: the 5 gross hips (7.8-47 mm off) opened the gap 24-40 mm; the good answers of
+          seeds 127, 137, 139 and 149 at most 16 mm, with up to 4 % of their samples inside
+          (an open-book dislocation closes the joint at its hinge);
         * an ambiguity (or an answer found once) whose other answer is beyond the limits is a
           *doubt*: it flags the first attempt and so calls the rescue, whose second attempt
           from other stage-1 starts settles it when it ends at the same answer with nothing in
