@@ -90,3 +90,67 @@ def test_a_second_attempt_at_the_same_answer_settles_doubts_only(monkeypatch):
     both = _attempt(at, warnings=["ambiguous"], doubts=["an implausible other answer"])
     assert _confirmed(run, (both, True), (_attempt(near), True)) is None
     assert _confirmed(run, (_attempt(at, warnings=["x"]), True), (_attempt(near), True)) is None
+
+
+def _intact(moved: dict, init=None, run=None, n_views=2):
+    """The intact-joint warnings of stage-2 ``poses``: the pelvis moved by ``pelvis`` (every
+    bone), then each bone of ``moved`` by its (mm, deg) about its centroid."""
+    run = run or _run()
+    init = init or {b: np.eye(4) for b in BONES}
+    pelvis = tf.from_params([12.0, -30.0, 5.0], np.deg2rad([4.0, -2.0, 7.0]))
+    poses = {b: pelvis @ init[b] for b in BONES}
+    for bone, (mm, deg) in moved.items():
+        c = tf.apply(poses[bone], run.renderer.centroid(bone)[None])[0]
+        shift = tf.from_params(list(c), [0.0, 0.0, 0.0])
+        poses[bone] = (
+            shift @ tf.from_params(list(mm), np.deg2rad(deg)) @ tf.invert(shift) @ poses[bone]
+        )
+    first = _first(poses, n_views)
+    return mb._intact_warnings(run, poses, first.views, first.fine)
+
+
+def test_a_kept_bone_moved_off_the_sacrum_is_an_intact_joint_warning():
+    assert _intact({}) == []  # the whole pelvis moved as one: nothing
+    assert _intact({"right_hip": ((4.0, 2.0, 0.0), (3.0, 0.0, 2.5))}) == []  # within 5 mm / 5 deg
+    (w,) = _intact({"right_hip": ((0.0, 9.5, 0.0), (0.0, 0.0, 0.0))})
+    assert w.startswith("right_hip ended 9.5 mm / 0.0 deg from where the sacrum puts it")
+    assert len(_intact({"right_hip": ((0.0, 0.0, 0.0), (0.0, 6.0, 0.0))})) == 1  # turned 6 deg
+    # the dislocated bone moves as it likes; without a plan, or switched off, nothing is judged
+    assert _intact({"left_hip": ((40.0, 0.0, 0.0), (20.0, 0.0, 0.0))}) == []
+    assert _intact({"right_hip": ((0.0, 9.5, 0.0), (0.0, 0.0, 0.0))}, run=_run(None)) == []
+    off = _run()
+    off.cfg = RegistrationSettings(intact_limits=None)
+    assert _intact({"right_hip": ((0.0, 9.5, 0.0), (0.0, 0.0, 0.0))}, run=off) == []
+
+
+def test_the_intact_joints_are_the_ct_not_the_start():
+    # a start whose right hip is 6 mm / 10 deg from the sacrum's pose (a tracked frame starts
+    # from the previous frame's answer): ending there is a warning, ending on the sacrum's
+    # pose (the CT's relation) is not
+    init = {b: np.eye(4) for b in BONES}
+    init["right_hip"] = tf.from_params([6.0, 0.0, 0.0], np.deg2rad([0.0, 10.0, 0.0]))
+    assert len(_intact({}, init=init)) == 1
+    assert _intact({}) == []
+
+
+def test_with_one_view_the_intact_joint_is_measured_at_the_detector():
+    # depth is not seen with one view: a hip moved 9.5 mm along the view axis (y, an AP view)
+    # measures less at the detector (magnification only) than one moved 9.5 mm sideways
+    run = _run()
+    run.cfg = RegistrationSettings(intact_limits=(0.01, 0.01))  # every move reported
+
+    def mm(move, n_views):
+        (w,) = _intact({"right_hip": (move, (0.0, 0.0, 0.0))}, run=run, n_views=n_views)
+        return float(w.split(" ended ")[1].split(" mm")[0])
+
+    assert mm((0.0, 9.5, 0.0), 2) == 9.5
+    assert mm((0.0, 9.5, 0.0), 1) < 0.6 * mm((9.5, 0.0, 0.0), 1)
+
+
+def test_intact_limits_are_validated():
+    import pytest
+
+    with pytest.raises(ValueError, match="intact_limits"):
+        RegistrationSettings(intact_limits=(0.0, 3.0))
+    with pytest.raises(ValueError, match="intact_limits"):
+        RegistrationSettings(intact_limits=(3.0,))

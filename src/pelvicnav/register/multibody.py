@@ -189,8 +189,31 @@ def _attempt(run: _Run, init: dict, s1) -> _Attempt:
                      run.dislocated)  # fmt: skip
         poses, disagreement, warnings, doubts = s2.poses, s2.disagreement, s2.warnings, s2.doubts
         stages.append(s2.result)
+        warnings = [*warnings, *_intact_warnings(run, poses, views, levels[-1])]
     return _Attempt(views, levels[-1], poses, stages, warnings, disagreement, run.body(init).name,
                     doubts)  # fmt: skip
+
+
+def _intact_warnings(run: _Run, poses: dict, views: ViewSet, fine: Level) -> list[str]:
+    """With a plan: each bone stage 1 moves with the pelvis that ended further than
+    ``intact_limits`` from the pose of the pelvis's first bone. Their joints are intact, so in
+    the CT's frame they move as one: the same ``world_from_ct`` (not the start's relative poses:
+    a tracked frame starts from the previous frame's; see
+    :class:`~pelvicnav.register.settings.RegistrationSettings`)."""
+    limits, kept = run.cfg.intact_limits, _kept(run)
+    if limits is None or run.dislocated is None or len(kept) < 2:
+        return []
+    r, first = run.renderer, kept[0]
+    out = []
+    for b in kept[1:]:
+        mm, deg = pose_disagreement(poses[first], poses[b], r.points(b, fine.index),
+                                    r.centroid(b, fine.index), views.projections,
+                                    views.pixel_spacing)  # fmt: skip
+        if mm > limits[0] or deg > limits[1]:
+            out.append(f"{b} ended {mm:.1f} mm / {deg:.1f} deg from where the {first} puts it "
+                       f"(its pose in the CT; limits {limits[0]:g} mm / {limits[1]:g} deg): the "
+                       "intact joints moved, so the pelvis may be misplaced")  # fmt: skip
+    return out
 
 
 def _judged(run: _Run, a: _Attempt, settled: bool) -> MultiBodyResult:

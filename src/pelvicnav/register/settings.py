@@ -469,16 +469,21 @@ class RegistrationSettings:
         stage 1 put the pelvis. Good registrations scored 0.46 per view and more (210 atlas cases,
         seeds 61-107); the whole pelvis misplaced scored 0.35-0.44 (seed 83 case 12, seed 89
         case 33, seed 107 case 37, 23-56 mm off). 0 switches it off.
-    unsettled_confirm_mm, unsettled_confirmations : float, int
-        Stage 1 has *settled* when at least ``unsettled_confirmations`` of the other stage-1
-        runs (the starts tried with a first guess, or the rescue's restarts) end within
-        ``unsettled_confirm_mm`` (at the body's centre, and as many degrees) of its answer; or
-        when its answer stopped on a tolerance and was the only run, or one other run ended
-        there too. Measured: seven good registrations with several starts had 1-4 others
-        within 1.2 mm; the three gross ones above had 0, 0 and 1 (their others 10.6-117 mm
-        away); seed 103 case 32, good but stopped on the generation limit, had 3 of the
-        rescue's 4 restarts within 0.1 mm (it was flagged before). 0 confirmations: a stage 1
-        that stopped on a tolerance has settled, and agreement is not counted.
+    intact_limits : (mm, deg) or None
+        With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
+        intact joints): a registration where stage 2 moved one of them further than this from
+        where the pelvis's first bone puts it (mm at its centroid and degrees; one view: the
+        median distance of its points at the detector) is flagged. Stage 2 gives the attached
+        bones a small box to absorb the models' error, not a joint that opens: a bone that used
+        it to move apart from the others was pulling the pelvis towards a place stage 1 missed
+        (seed 167 case 30: every stage-1 run put the pelvis 17-18 mm too far forward, where the
+        coarse gradient NCC scored better than the truth; stage 2 moved the right hip 11.9 mm
+        from the sacrum, towards the truth; its stage 1 settled by agreement and the final GO
+        0.43 per view passed). Default (5, 5): on eight seeds (320 atlas cases), 4 of the 13 gross
+        registrations moved a kept bone 5.9-12.6 mm / 2.3-8.0 deg (167/30 caught by this alone),
+        the good ones at most 2.5 mm / 3.4 deg (seed 149 case 35, its kept hip 1.7 mm / 2.3 deg
+        off: flagged under (3, 3)).
+        None switches it off.
     """
 
     pyramid: PyramidSettings = field(default_factory=PyramidSettings)
@@ -489,10 +494,17 @@ class RegistrationSettings:
     unsettled_similarity: float = 0.5
     unsettled_confirm_mm: float = 2.0
     unsettled_confirmations: int = 2
+    intact_limits: tuple[float, float] | None = (5.0, 5.0)
 
     def __post_init__(self) -> None:
         if not (self.unsettled_confirm_mm >= 0 and self.unsettled_confirmations >= 0):
             raise ValueError("unsettled_confirm_mm and unsettled_confirmations must be >= 0")
+        if self.intact_limits is not None and (
+            len(self.intact_limits) != 2 or not min(self.intact_limits) > 0
+        ):
+            raise ValueError(
+                f"intact_limits must be (mm, deg) > 0 or None, got {self.intact_limits}"
+            )
         n = self.pyramid.n_levels
         per_level = {
             "stage1.populations": self.stage1.populations,
