@@ -4,6 +4,7 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
@@ -148,8 +149,6 @@ def test_with_one_view_the_intact_joint_is_measured_at_the_detector():
 
 
 def test_intact_limits_are_validated():
-    import pytest
-
     with pytest.raises(ValueError, match="intact_limits"):
         RegistrationSettings(intact_limits=(0.0, 3.0))
     with pytest.raises(ValueError, match="intact_limits"):

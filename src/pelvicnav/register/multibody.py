@@ -203,12 +203,9 @@ def _intact_warnings(run: _Run, poses: dict, views: ViewSet, fine: Level) -> lis
     limits, kept = run.cfg.intact_limits, _kept(run)
     if limits is None or run.dislocated is None or len(kept) < 2:
         return []
-    r, first = run.renderer, kept[0]
-    out = []
+    first, out = kept[0], []
     for b in kept[1:]:
-        mm, deg = pose_disagreement(poses[first], poses[b], r.points(b, fine.index),
-                                    r.centroid(b, fine.index), views.projections,
-                                    views.pixel_spacing)  # fmt: skip
+        mm, deg = _apart(run, views, fine, b, poses[first], poses[b])
         if mm > limits[0] or deg > limits[1]:
             out.append(f"{b} ended {mm:.1f} mm / {deg:.1f} deg from where the {first} puts it "
                        f"(its pose in the CT; limits {limits[0]:g} mm / {limits[1]:g} deg): the "
@@ -356,14 +353,22 @@ def _confirmed(run: _Run, first: tuple, second: tuple) -> MultiBodyResult | None
 def _same_answer(run: _Run, a: _Attempt, b: _Attempt) -> bool:
     """Whether every bone of attempt ``b`` ended within the re-search's ``ambiguity`` (mm at
     its centroid, degrees) of attempt ``a``'s pose."""
-    r, fine, lim = run.renderer, a.fine.index, run.cfg.research.ambiguity
-    for bone in r.bones:
-        mm, deg = pose_disagreement(a.poses[bone], b.poses[bone], r.points(bone, fine),
-                                    r.centroid(bone, fine), a.views.projections,
-                                    a.views.pixel_spacing)  # fmt: skip
+    lim = run.cfg.research.ambiguity
+    for bone in run.renderer.bones:
+        mm, deg = _apart(run, a.views, a.fine, bone, a.poses[bone], b.poses[bone])
         if mm > lim[0] or deg > lim[1]:
             return False
     return True
+
+
+def _apart(run: _Run, views: ViewSet, fine: Level, bone: str, T_a: NDArray,
+           T_b: NDArray) -> tuple[float, float]:  # fmt: skip
+    """How far apart two poses of ``bone`` are (:func:`~pelvicnav.metrics.errors.
+    pose_disagreement` with its fine-level model): mm at its centroid and degrees, or with one
+    view the median distance of its points at the detector."""
+    r = run.renderer
+    return pose_disagreement(T_a, T_b, r.points(bone, fine.index), r.centroid(bone, fine.index),
+                             views.projections, views.pixel_spacing)  # fmt: skip
 
 
 def _kept(run: _Run) -> list[str]:
@@ -378,11 +383,9 @@ def _moved_pelvis(run: _Run, first: _Attempt, again: MultiBodyResult) -> bool:
     again, and a second answer for it does not clear the first attempt's doubts (seed 127,
     cases 16, 22 and 34: a hip 13-45 mm off flagged as ambiguous or found once, then
     13-33 mm off from the rescue, unflagged)."""
-    r, fine, lim = run.renderer, first.fine.index, run.cfg.research.ambiguity
+    lim = run.cfg.research.ambiguity
     for b in _kept(run):
-        mm, deg = pose_disagreement(first.poses[b], again.poses[b], r.points(b, fine),
-                                    r.centroid(b, fine), first.views.projections,
-                                    first.views.pixel_spacing)  # fmt: skip
+        mm, deg = _apart(run, first.views, first.fine, b, first.poses[b], again.poses[b])
         if mm > lim[0] or deg > lim[1]:
             return True
     return False

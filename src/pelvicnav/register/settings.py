@@ -469,6 +469,16 @@ class RegistrationSettings:
         stage 1 put the pelvis. Good registrations scored 0.46 per view and more (210 atlas cases,
         seeds 61-107); the whole pelvis misplaced scored 0.35-0.44 (seed 83 case 12, seed 89
         case 33, seed 107 case 37, 23-56 mm off). 0 switches it off.
+    unsettled_confirm_mm, unsettled_confirmations : float, int
+        Stage 1 has *settled* when at least ``unsettled_confirmations`` of the other stage-1
+        runs (the starts tried with a first guess, or the rescue's restarts) end within
+        ``unsettled_confirm_mm`` (at the body's centre, and as many degrees) of its answer; or
+        when its answer stopped on a tolerance and was the only run, or one other run ended
+        there too. Measured: seven good registrations with several starts had 1-4 others
+        within 1.2 mm; the three gross ones above had 0, 0 and 1 (their others 10.6-117 mm
+        away); seed 103 case 32, good but stopped on the generation limit, had 3 of the
+        rescue's 4 restarts within 0.1 mm (it was flagged before). 0 confirmations: a stage 1
+        that stopped on a tolerance has settled, and agreement is not counted.
     intact_limits : (mm, deg) or None
         With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
         intact joints): a registration where stage 2 moved one of them further than this from
@@ -482,8 +492,7 @@ class RegistrationSettings:
         0.43 per view passed). Default (5, 5): on eight seeds (320 atlas cases), 4 of the 13 gross
         registrations moved a kept bone 5.9-12.6 mm / 2.3-8.0 deg (167/30 caught by this alone),
         the good ones at most 2.5 mm / 3.4 deg (seed 149 case 35, its kept hip 1.7 mm / 2.3 deg
-        off: flagged under (3, 3)).
-        None switches it off.
+        off: flagged under (3, 3)). None switches it off.
     """
 
     pyramid: PyramidSettings = field(default_factory=PyramidSettings)
