@@ -93,6 +93,27 @@ def test_a_second_attempt_at_the_same_answer_settles_doubts_only(monkeypatch):
     assert _confirmed(run, (_attempt(at, warnings=["x"]), True), (_attempt(near), True)) is None
 
 
+def test_a_clean_better_rescue_answers_doubts_and_an_unsettled_stage_1(monkeypatch):
+    # judged: converged unless the attempt has warnings or doubts or stage 1 did not settle
+    monkeypatch.setattr(mb, "_judged", lambda run, a, settled: _Judged(
+        settled and not (a.warnings or a.doubts), 1.0))  # fmt: skip
+    run = _run()
+    at = {b: np.eye(4) for b in BONES}
+    doubted = _attempt(at, doubts=["found once, an implausible other answer among them"])
+    clean, flagged = _Judged(True, 1.015), _Judged(False, 1.015)
+    assert mb._answered(run, doubted, clean)
+    assert mb._answered(run, _attempt(at), clean)  # flagged only as unsettled
+    # the rescue's answer flagged on its own (its joints, an ambiguity, a doubt): the doubts stand
+    assert not mb._answered(run, doubted, flagged)
+    # the first attempt flagged by a warning (an ambiguity with a plausible other answer)
+    both = _attempt(at, warnings=["ambiguous"], doubts=["an implausible other answer"])
+    assert not mb._answered(run, both, clean)
+    assert not mb._answered(run, _attempt(at, warnings=["ambiguous"]), clean)
+    # settled and without its doubts the first attempt is still flagged (a similarity floor)
+    monkeypatch.setattr(mb, "_judged", lambda run, a, settled: _Judged(False, 1.0))
+    assert not mb._answered(run, doubted, clean)
+
+
 def _intact(moved: dict, init=None, run=None, n_views=2):
     """The intact-joint warnings of stage-2 ``poses``: the pelvis moved by ``pelvis`` (every
     bone), then each bone of ``moved`` by its (mm, deg) about its centroid."""

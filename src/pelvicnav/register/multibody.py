@@ -295,7 +295,9 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
     as settled. Otherwise the best stage-1 answer, if better than ``s1``, goes on to stage 2,
     and the better-scoring result is returned; still flagged, with the first attempt's
     warnings, when it kept the pelvis where the first attempt had it (:func:`_moved_pelvis`)
-    and scores less than ``rescue_margin`` better (``Stage1Settings``). A first attempt
+    and scores less than ``rescue_margin`` better (``Stage1Settings``), unless the first
+    attempt was flagged only by doubts or an unsettled stage 1 and the rescued answer by
+    nothing (:func:`_answered`). A first attempt
     flagged only by doubts (ambiguities whose other answer has implausible joints,
     :class:`~pelvicnav.register.settings.ResearchSettings` ``joint_limits``) is confirmed when
     the rescue's stage 2 ends where it did with no warning of its own (:func:`_confirmed`)."""
@@ -318,7 +320,7 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
     note = (f"rescued: the first attempt was flagged (similarity {result.similarity:.3f}); "
             f"stage 1 from another start scored better and gave this answer")  # fmt: skip
     clearly = again.similarity - result.similarity >= run.cfg.stage1.rescue_margin
-    if clearly or _moved_pelvis(run, first, again):
+    if clearly or _moved_pelvis(run, first, again) or _answered(run, first, again):
         return replace(again, warnings=(note, *again.warnings))
     same = (f"{note}, but with the same pelvis ({', '.join(_kept(run))} within "
             f"{run.cfg.research.ambiguity[0]:g} mm / {run.cfg.research.ambiguity[1]:g} deg of the "
@@ -348,6 +350,22 @@ def _confirmed(run: _Run, first: tuple, second: tuple) -> MultiBodyResult | None
     note = (f"confirmed: the first attempt's doubts ({'; '.join(a.doubts)}) were settled by a "
             "second attempt from other stage-1 starts that ended at the same answer")  # fmt: skip
     return replace(best, warnings=(note, *best.warnings))
+
+
+def _answered(run: _Run, first: _Attempt, again: MultiBodyResult) -> bool:
+    """Whether the first attempt was flagged only for questions a second attempt answers, and
+    the rescue's answer (which scores better) is flagged by nothing, its own doubts included.
+    The questions: doubts (ambiguities or single finds whose other answer has implausible
+    joints) and a stage 1 that did not settle; the first attempt judged as settled and without
+    its doubts must pass. A better answer from other stage-1 starts that passes every check
+    replies to both, even when it kept the pelvis (then the pelvis was found twice). Seed 137
+    case 16: the first attempt's hip 17.5 mm off, found once against an implausible other
+    answer; the rescue's 0.2 mm, 0.015 better, clean. Seed 173 case 29: stage 1 unsettled at
+    0.48 per view; the rescue kept the pelvis, 0.4 mm, clean. The gross rescues that kept the
+    pelvis (seeds 127, 131, 173) were each flagged on their own, by joints or ambiguities."""
+    if first.warnings or not again.converged:
+        return False
+    return _judged(run, replace(first, doubts=[]), True).converged
 
 
 def _same_answer(run: _Run, a: _Attempt, b: _Attempt) -> bool:

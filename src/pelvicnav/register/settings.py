@@ -330,7 +330,10 @@ class ResearchSettings:
         Tried 0.03 with the gradient refinement (study seed 31): it flagged all 3 gross
         registrations of 40 but 4 of its 7 flags were good registrations (two answers 4-10 mm
         apart within 0.006-0.020: the images do not decide); 0.01 flags 2 of the 3 and the
-        third falls under ``min_similarity``.
+        third falls under ``min_similarity``. 0.005 was tried in session 21: on the eight
+        seeds of session 20 it kept every gross registration flagged and cleared three good
+        ones (their answers 0.006-0.010 apart), but on a fresh seed (193, case 13) it left a
+        hip 18.3 mm off unflagged whose two answers were 0.006 apart.
     retry_mm : float
         With two or more views, a re-search that ends more than this far from the answer (mm
         at the detector) and scores worse earns one more re-search (another seed, the other
