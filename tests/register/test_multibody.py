@@ -337,6 +337,8 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     assert not _settled(run, limited, [limited, near[0], far, twisted])
     assert not _settled(run, limited, [limited])
     assert _settled(run, first, [first])  # a lone run that stopped on a tolerance
+    lone_off = replace(run, cfg=replace(cfg, lone_run_settles=False))
+    assert not _settled(lone_off, first, [first]) and _settled(lone_off, first, [first, near[0]])
     assert _settled(run, first, [first, near[0], far])
     assert not _settled(run, first, [first, far, twisted])  # several starts, none agree
     off = replace(run, cfg=replace(cfg, unsettled_confirmations=0))

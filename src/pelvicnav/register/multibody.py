@@ -268,7 +268,8 @@ def _settled(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
     if need == 0:
         return answer[1].result.converged
     agree = _agreeing(run, answer, tried)
-    return agree >= need or (answer[1].result.converged and (len(tried) == 1 or agree >= 1))
+    lone = len(tried) == 1 and run.cfg.lone_run_settles
+    return agree >= need or (answer[1].result.converged and (lone or agree >= 1))
 
 
 def _agreeing(run: _Run, answer: tuple, tried: list[tuple]) -> int:
@@ -304,7 +305,8 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
     turned = _turned(run, init)
     seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
     tried = _stage1_runs(run, turned, seeds)
-    if not s1.result.converged and _settled(run, (init, s1), [(init, s1), *tried]):
+    alone = [(init, s1)]
+    if not _settled(run, alone[0], alone) and _settled(run, alone[0], [*alone, *tried]):
         return _judged(run, first, True)  # the restarts found stage 1's answer: judge again
     start, best = _best(tried)
     if _f(best) >= _f(s1):

@@ -482,6 +482,13 @@ class RegistrationSettings:
         away); seed 103 case 32, good but stopped on the generation limit, had 3 of the
         rescue's 4 restarts within 0.1 mm (it was flagged before). 0 confirmations: a stage 1
         that stopped on a tolerance has settled, and agreement is not counted.
+    lone_run_settles : bool
+        Whether a lone stage-1 run (no first guess taken, so one start) that stopped on a
+        tolerance has settled (default True). False treats it as unsettled, so a weak final
+        GO flags it and calls the rescue, whose restarts can settle it. Seed 193 case 0: a
+        lone run stopped 17.8 mm off in depth and passed unflagged; with False it is flagged
+        and the rescue ends at the truth. Off by default: measured in session 21 (see
+        docs/registration.md), not yet validated.
     intact_limits : (mm, deg) or None
         With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
         intact joints): a registration where stage 2 moved one of them further than this from
@@ -506,6 +513,7 @@ class RegistrationSettings:
     unsettled_similarity: float = 0.5
     unsettled_confirm_mm: float = 2.0
     unsettled_confirmations: int = 2
+    lone_run_settles: bool = True
     intact_limits: tuple[float, float] | None = (5.0, 5.0)
 
     def __post_init__(self) -> None:
