@@ -303,7 +303,8 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     """Two other stage-1 runs (from other starts) ending within 2 mm and 2 deg of the answer
     settle it even if it hit its generation limit; one settles an answer that stopped on a
     tolerance; several starts with none there leave it unsettled (seed 107 case 37: the others
-    ended 10.6-117 mm away); a single run settles when it stopped on a tolerance."""
+    ended 10.6-117 mm away); a single run settles when it stopped on a tolerance; so does one
+    that stopped on a tolerance and leads every run that ended elsewhere by ``unsettled_lead``."""
     from pelvicnav.register.cmaes import CMAESResult
     from pelvicnav.register.multibody import _Run, _settled
     from pelvicnav.register.result import StageResult
@@ -316,12 +317,12 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     centre = np.array([0.0, 0.0, -10.0])  # the sacrum and right hip's centre
     answer = pj.six_dof_pose(np.array([5.0, -3.0, 2.0, 1.0, 2.0, -1.0]), center=centre)
 
-    def ended(turn, params, converged=True):
+    def ended(turn, params, converged=True, f=-1.0):
         """A run started from ``init`` turned by ``turn`` that ended at ``answer`` moved by
-        ``params`` ([t mm, r deg] about the centre)."""
+        ``params`` ([t mm, r deg] about the centre), scoring ``f``."""
         start = {b: turn @ T for b, T in init.items()}
         final = pj.six_dof_pose(np.asarray(params, float), center=centre) @ answer
-        cma = CMAESResult(x=np.zeros(6), f=-1.0, evaluations=2500, generations=25,
+        cma = CMAESResult(x=np.zeros(6), f=f, evaluations=2500, generations=25,
                           converged=converged, history=np.linspace(0.0, -1.0, 25),
                           final_std=0.1 if converged else 5.0)  # fmt: skip
         stage = StageResult("stage 1", [cma], 0.0)
@@ -343,3 +344,11 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     assert not _settled(run, first, [first, far, twisted])  # several starts, none agree
     off = replace(run, cfg=replace(cfg, unsettled_confirmations=0))
     assert not _settled(off, limited, [limited, *near]) and _settled(off, first, [first, far])
+    # a clear winner found once: every run that ended elsewhere scores 5 % worse or more
+    winner, close = ended(np.eye(4), np.zeros(6), f=-1.2), ended(np.eye(4), np.zeros(6), f=-1.04)
+    assert _settled(run, winner, [winner, far, twisted])
+    assert not _settled(run, close, [close, far, twisted])  # a lead under 5 %
+    stuck = ended(np.eye(4), np.zeros(6), False, -1.2)  # leads, but hit its generation limit
+    assert not _settled(run, stuck, [stuck, far, twisted])
+    no_lead = replace(run, cfg=replace(cfg, unsettled_lead=0.0))
+    assert not _settled(no_lead, winner, [winner, far, twisted])

@@ -93,6 +93,26 @@ def test_a_second_attempt_at_the_same_answer_settles_doubts_only(monkeypatch):
     assert _confirmed(run, (_attempt(at, warnings=["x"]), True), (_attempt(near), True)) is None
 
 
+def test_a_second_attempt_at_the_same_answer_settles_an_unsettled_stage_1(monkeypatch):
+    # judged: converged when settled and without warnings or doubts; similarity from the hip
+    def judged(run, a, settled):
+        return _Judged(
+            settled and not (a.warnings or a.doubts), 1.0 + a.poses["left_hip"][0, 3] / 100
+        )
+
+    monkeypatch.setattr(mb, "_judged", judged)
+    run = _run()
+    at = {b: np.eye(4) for b in BONES}
+    near = {**at, "left_hip": tf.from_params([-1.0, 0.0, 0.0], [0.0, 0.0, 0.0])}
+    far = {**at, "left_hip": tf.from_params([9.0, 0.0, 0.0], [0.0, 0.0, 0.0])}
+    got = _confirmed(run, (_attempt(at), False), (_attempt(near), False))
+    assert got is not None and got.converged and got.similarity == 1.0  # the first scored better
+    assert "stage 1 did not settle" in got.warnings[0]
+    assert _confirmed(run, (_attempt(at), False), (_attempt(far), True)) is None
+    assert _confirmed(run, (_attempt(at, warnings=["x"]), False), (_attempt(near), True)) is None
+    assert _confirmed(run, (_attempt(at), True), (_attempt(near), True)) is None  # nothing to ask
+
+
 def test_a_clean_better_rescue_answers_doubts_and_an_unsettled_stage_1(monkeypatch):
     # judged: converged unless the attempt has warnings or doubts or stage 1 did not settle
     monkeypatch.setattr(mb, "_judged", lambda run, a, settled: _Judged(

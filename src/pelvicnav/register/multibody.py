@@ -262,30 +262,37 @@ def _settled(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
     """Whether stage 1's ``answer`` (start, outcome), the best of the runs ``tried``, stands:
     at least ``unsettled_confirmations`` of the other runs ended where it did (within
     ``unsettled_confirm_mm`` at the body's centre and as many degrees); or it stopped on a
-    tolerance and was the only run, or another one ended there too. With 0 confirmations, a run
-    that stopped on a tolerance is settled (agreement is not counted)."""
+    tolerance and was the only run, or another one ended there too, or it leads every run that
+    ended elsewhere by ``unsettled_lead`` (:func:`_leads`). With 0 confirmations, a run that
+    stopped on a tolerance is settled (agreement is not counted)."""
     need = run.cfg.unsettled_confirmations
     if need == 0:
         return answer[1].result.converged
-    agree = _agreeing(run, answer, tried)
+    agree = sum(_agree(run, answer, other) for other in tried if other[1] is not answer[1])
     lone = len(tried) == 1 and run.cfg.lone_run_settles
-    return agree >= need or (answer[1].result.converged and (lone or agree >= 1))
+    stopped = answer[1].result.converged
+    return agree >= need or (stopped and (lone or agree >= 1 or _leads(run, answer, tried)))
 
 
-def _agreeing(run: _Run, answer: tuple, tried: list[tuple]) -> int:
-    """How many runs in ``tried`` other than ``answer`` ended where it did."""
-    cfg = run.cfg
-    T = _body_pose(run, *answer)
+def _agree(run: _Run, answer: tuple, other: tuple) -> bool:
+    """Whether stage-1 run ``other`` (start, outcome) ended where ``answer`` did: within
+    ``unsettled_confirm_mm`` at the body's centre and as many degrees."""
+    T, U = _body_pose(run, *answer), _body_pose(run, *other)
     centre = run.body(answer[0]).centre[None]
-    agree = 0
-    for start, s1 in tried:
-        if s1 is answer[1]:
-            continue
-        U = _body_pose(run, start, s1)
-        mm = np.linalg.norm(tf.apply(U, centre) - tf.apply(T, centre))
-        deg = np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(U[:3, :3] @ T[:3, :3].T)))
-        agree += bool(mm <= cfg.unsettled_confirm_mm and deg <= cfg.unsettled_confirm_mm)
-    return agree
+    mm = np.linalg.norm(tf.apply(U, centre) - tf.apply(T, centre))
+    deg = np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(U[:3, :3] @ T[:3, :3].T)))
+    lim = run.cfg.unsettled_confirm_mm
+    return bool(mm <= lim and deg <= lim)
+
+
+def _leads(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
+    """Whether ``answer`` scores better than every other run in ``tried`` that ended elsewhere
+    by at least ``unsettled_lead`` of its own objective (a clear winner found once); False
+    when no run ended elsewhere."""
+    lead = run.cfg.unsettled_lead
+    f = _f(answer[1])
+    others = [_f(o[1]) for o in tried if o[1] is not answer[1] and not _agree(run, answer, o)]
+    return lead > 0 and bool(others) and min(others) - f >= lead * abs(f)
 
 
 def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
@@ -298,10 +305,10 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
     warnings, when it kept the pelvis where the first attempt had it (:func:`_moved_pelvis`)
     and scores less than ``rescue_margin`` better (``Stage1Settings``), unless the first
     attempt was flagged only by doubts or an unsettled stage 1 and the rescued answer by
-    nothing (:func:`_answered`). A first attempt
-    flagged only by doubts (ambiguities whose other answer has implausible joints,
-    :class:`~pelvicnav.register.settings.ResearchSettings` ``joint_limits``) is confirmed when
-    the rescue's stage 2 ends where it did with no warning of its own (:func:`_confirmed`)."""
+    nothing (:func:`_answered`). A first attempt flagged only by doubts (ambiguities whose
+    other answer has implausible joints, :class:`~pelvicnav.register.settings.ResearchSettings`
+    ``joint_limits``) or an unsettled stage 1 is confirmed when the rescue's stage 2 ends where
+    it did with no warning of its own (:func:`_confirmed`)."""
     turned = _turned(run, init)
     seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
     tried = _stage1_runs(run, turned, seeds)
@@ -332,24 +339,28 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
 
 
 def _confirmed(run: _Run, first: tuple, second: tuple) -> MultiBodyResult | None:
-    """The better-scoring of two attempts ``(attempt, settled)`` judged without their doubts,
-    when the first was flagged by doubts only, neither has a warning of its own, and every bone
-    ended within the re-search's ``ambiguity`` of the first attempt's pose; else None. An
-    ambiguity whose other answer no dislocation gives (the joints closed through or opened past
-    ``joint_limits``) is a doubt, not a verdict: a second attempt from other stage-1 starts that
-    ends at the same answer with nothing else in doubt settles it (seeds 137 case 25 and 139
-    case 4, good to 0.3 mm, each found once against implausible other answers: confirmed; 139
-    case 4 was flagged before). When the second attempt ends elsewhere, it is judged as before
+    """The better-scoring of two attempts ``(attempt, settled)`` judged as settled and without
+    their doubts, when the first was flagged only by doubts or an unsettled stage 1, neither
+    has a warning of its own, and every bone ended within the re-search's ``ambiguity`` of the
+    first attempt's pose; else None. Both questions are answered by a second attempt from other
+    stage-1 starts that ends at the same answer with nothing else in doubt: an ambiguity whose
+    other answer no dislocation gives (the joints closed through or opened past
+    ``joint_limits``) is a doubt, not a verdict (seeds 137 case 25 and 139 case 4, good to
+    0.3 mm, each found once against implausible other answers: confirmed); and the same pelvis
+    found from two sets of starts has settled (seed 181 case 39: 0.8 mm, stage 1 stopped on its
+    generation limit; the rescue ended at the same answer 0.001 below it and the first attempt
+    stayed flagged before). When the second attempt ends elsewhere, it is judged as before
     (seed 151 case 1: the first attempt's hip was 8.7 mm off; the rescue found the truth,
     0.022 better)."""
-    (a, _), (b, _) = first, second
-    if not a.doubts:
+    (a, settled), (b, _) = first, second
+    if not a.doubts and settled:
         return None
-    clean = [_judged(run, replace(x, doubts=[]), s) for x, s in (first, second)]
+    clean = [_judged(run, replace(x, doubts=[]), True) for x in (a, b)]
     if not all(c.converged for c in clean) or not _same_answer(run, a, b):
         return None
     best = max(clean, key=lambda c: c.similarity)
-    note = (f"confirmed: the first attempt's doubts ({'; '.join(a.doubts)}) were settled by a "
+    questions = [*a.doubts, *([] if settled else ["stage 1 did not settle"])]
+    note = (f"confirmed: the first attempt's doubts ({'; '.join(questions)}) were settled by a "
             "second attempt from other stage-1 starts that ended at the same answer")  # fmt: skip
     return replace(best, warnings=(note, *best.warnings))
 

@@ -482,13 +482,25 @@ class RegistrationSettings:
         away); seed 103 case 32, good but stopped on the generation limit, had 3 of the
         rescue's 4 restarts within 0.1 mm (it was flagged before). 0 confirmations: a stage 1
         that stopped on a tolerance has settled, and agreement is not counted.
+    unsettled_lead : float
+        Stage 1 has also settled when its answer stopped on a tolerance and scores better than
+        every other run that ended elsewhere by at least this fraction of its own objective: a
+        clear winner, found once. Measured (session 22, stage-1 objectives of every run):
+        good registrations flagged only as unsettled led by 11-20 % (seeds 197 cases 26 and 29,
+        137 case 22; 7.7 % for 181 case 23, still flagged); wrong stage-1 answers that stopped
+        on a tolerance led by 2.5-9.3 % (seeds 107 case 37, 127 case 14, 151 case 12, 193 case
+        24, 179 case 1), and those above 5 % also scored below ``min_similarity``. 0 switches it
+        off.
     lone_run_settles : bool
         Whether a lone stage-1 run (no first guess taken, so one start) that stopped on a
         tolerance has settled (default True). False treats it as unsettled, so a weak final
         GO flags it and calls the rescue, whose restarts can settle it. Seed 193 case 0: a
-        lone run stopped 17.8 mm off in depth and passed unflagged; with False it is flagged
-        and the rescue ends at the truth. Off by default: measured in session 21 (see
-        docs/registration.md), not yet validated.
+        lone run stopped 17.8 mm off in depth and passed unflagged. Measured on the 120
+        registrations of seeds 181, 193 and 197 (session 22): no gross registration newly
+        flagged (193 case 0 ended at the same answer, still unflagged), one good registration
+        (197 case 13) replaced by the rescue's gross one (25.8 mm, flagged), good ones flagged
+        3 -> 5 on seed 197, a median 20 s per registration instead of 5. Kept for research; not
+        the default.
     intact_limits : (mm, deg) or None
         With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
         intact joints): a registration where stage 2 moved one of them further than this from
@@ -513,12 +525,19 @@ class RegistrationSettings:
     unsettled_similarity: float = 0.5
     unsettled_confirm_mm: float = 2.0
     unsettled_confirmations: int = 2
+    unsettled_lead: float = 0.10
     lone_run_settles: bool = True
     intact_limits: tuple[float, float] | None = (5.0, 5.0)
 
     def __post_init__(self) -> None:
-        if not (self.unsettled_confirm_mm >= 0 and self.unsettled_confirmations >= 0):
-            raise ValueError("unsettled_confirm_mm and unsettled_confirmations must be >= 0")
+        if not (
+            self.unsettled_confirm_mm >= 0
+            and self.unsettled_confirmations >= 0
+            and self.unsettled_lead >= 0
+        ):
+            raise ValueError(
+                "unsettled_confirm_mm, unsettled_confirmations and unsettled_lead must be >= 0"
+            )
         if self.intact_limits is not None and (
             len(self.intact_limits) != 2 or not min(self.intact_limits) > 0
         ):
