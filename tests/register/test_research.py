@@ -197,6 +197,8 @@ def test_negative_probe_and_settling_settings_are_refused():
         ResearchSettings(turn_deg=-20.0)
     with pytest.raises(ValueError, match="unsettled_confirm"):
         RegistrationSettings(unsettled_confirmations=-1)
+    with pytest.raises(ValueError, match="unsettled_lead"):
+        RegistrationSettings(unsettled_lead=-0.1)
 
 
 def test_the_flag_reads_the_images_not_the_prior(monkeypatch):

@@ -268,10 +268,12 @@ def _settled(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
     need = run.cfg.unsettled_confirmations
     if need == 0:
         return answer[1].result.converged
-    agree = sum(_agree(run, answer, other) for other in tried if other[1] is not answer[1])
+    others = [o for o in tried if o[1] is not answer[1]]
+    elsewhere = [o for o in others if not _agree(run, answer, o)]
+    agree = len(others) - len(elsewhere)
     lone = len(tried) == 1 and run.cfg.lone_run_settles
     stopped = answer[1].result.converged
-    return agree >= need or (stopped and (lone or agree >= 1 or _leads(run, answer, tried)))
+    return agree >= need or (stopped and (lone or agree >= 1 or _leads(run, answer, elsewhere)))
 
 
 def _agree(run: _Run, answer: tuple, other: tuple) -> bool:
@@ -285,14 +287,12 @@ def _agree(run: _Run, answer: tuple, other: tuple) -> bool:
     return bool(mm <= lim and deg <= lim)
 
 
-def _leads(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
-    """Whether ``answer`` scores better than every other run in ``tried`` that ended elsewhere
-    by at least ``unsettled_lead`` of its own objective (a clear winner found once); False
-    when no run ended elsewhere."""
-    lead = run.cfg.unsettled_lead
-    f = _f(answer[1])
-    others = [_f(o[1]) for o in tried if o[1] is not answer[1] and not _agree(run, answer, o)]
-    return lead > 0 and bool(others) and min(others) - f >= lead * abs(f)
+def _leads(run: _Run, answer: tuple, elsewhere: list[tuple]) -> bool:
+    """Whether ``answer`` scores better than every run in ``elsewhere`` (those that ended
+    elsewhere) by at least ``unsettled_lead`` of its own objective (a clear winner found
+    once); False when there is none."""
+    lead, f = run.cfg.unsettled_lead, _f(answer[1])
+    return lead > 0 and bool(elsewhere) and min(_f(o[1]) for o in elsewhere) - f >= lead * abs(f)
 
 
 def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,

@@ -487,10 +487,10 @@ class RegistrationSettings:
         every other run that ended elsewhere by at least this fraction of its own objective: a
         clear winner, found once. Measured (session 22, stage-1 objectives of every run):
         good registrations flagged only as unsettled led by 11-20 % (seeds 197 cases 26 and 29,
-        137 case 22; 7.7 % for 181 case 23, still flagged); wrong stage-1 answers that stopped
-        on a tolerance led by 2.5-9.3 % (seeds 107 case 37, 127 case 14, 151 case 12, 193 case
-        24, 179 case 1), and those above 5 % also scored below ``min_similarity``. 0 switches it
-        off.
+        137 case 22; 5.7-7.7 % for 211 case 36 and 181 case 23, still flagged); wrong stage-1
+        answers that stopped on a tolerance led by 2.5-9.3 % (seeds 107 case 37, 127 case 14,
+        151 case 12, 193 case 24, 179 case 1), and those above 5 % also scored below
+        ``min_similarity``. 0 switches it off.
     lone_run_settles : bool
         Whether a lone stage-1 run (no first guess taken, so one start) that stopped on a
         tolerance has settled (default True). False treats it as unsettled, so a weak final
