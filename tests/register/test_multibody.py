@@ -299,35 +299,45 @@ class _Bones:
                 "right_hip": np.array([-90.0, 0.0, -20.0])}[bone]  # fmt: skip
 
 
+_S1_CENTRE = np.array([0.0, 0.0, -10.0])  # the sacrum and right hip's centre (_Bones)
+
+
+def _stage1_run(cfg):
+    from pelvicnav.register.multibody import _Run
+
+    return _Run(None, None, _Bones(), cfg, 0, None, "left_hip", 0.0)
+
+
+def _ended(turn, params, converged=True, f=-1.0):
+    """A stage-1 run ``(start, outcome)`` started from the identity turned by ``turn`` that ended
+    at a fixed answer moved by ``params`` ([t mm, r deg] about the body's centre), scoring
+    ``f``."""
+    from pelvicnav.register.cmaes import CMAESResult
+    from pelvicnav.register.result import StageResult
+    from pelvicnav.register.stage1 import Stage1Outcome
+
+    answer = pj.six_dof_pose(np.array([5.0, -3.0, 2.0, 1.0, 2.0, -1.0]), center=_S1_CENTRE)
+    start = {b: turn @ np.eye(4) for b in _Bones.bones}
+    final = pj.six_dof_pose(np.asarray(params, float), center=_S1_CENTRE) @ answer
+    cma = CMAESResult(x=np.zeros(6), f=f, evaluations=2500, generations=25,
+                      converged=converged, history=np.linspace(0.0, -1.0, 25),
+                      final_std=0.1 if converged else 5.0)  # fmt: skip
+    stage = StageResult("stage 1", [cma], 0.0)
+    return start, Stage1Outcome(final @ tf.invert(start["sacrum"]), None, stage)
+
+
 def test_stage_1_settles_when_other_starts_end_at_its_answer():
     """Two other stage-1 runs (from other starts) ending within 2 mm and 2 deg of the answer
     settle it even if it hit its generation limit; one settles an answer that stopped on a
     tolerance; several starts with none there leave it unsettled (seed 107 case 37: the others
-    ended 10.6-117 mm away); a single run settles when it stopped on a tolerance; so does one
-    that stopped on a tolerance and leads every run that ended elsewhere by ``unsettled_lead``."""
-    from pelvicnav.register.cmaes import CMAESResult
-    from pelvicnav.register.multibody import _Run, _settled
-    from pelvicnav.register.result import StageResult
+    ended 10.6-117 mm away); a single run that stopped on a tolerance settles only with
+    ``lone_run_settles`` (off by default); one that stopped on a tolerance and leads every run
+    that ended elsewhere by ``unsettled_lead`` settles."""
+    from pelvicnav.register.multibody import _settled
     from pelvicnav.register.settings import RegistrationSettings
-    from pelvicnav.register.stage1 import Stage1Outcome
 
     cfg = RegistrationSettings()
-    run = _Run(None, None, _Bones(), cfg, 0, None, "left_hip", 0.0)
-    init = {b: np.eye(4) for b in _Bones.bones}
-    centre = np.array([0.0, 0.0, -10.0])  # the sacrum and right hip's centre
-    answer = pj.six_dof_pose(np.array([5.0, -3.0, 2.0, 1.0, 2.0, -1.0]), center=centre)
-
-    def ended(turn, params, converged=True, f=-1.0):
-        """A run started from ``init`` turned by ``turn`` that ended at ``answer`` moved by
-        ``params`` ([t mm, r deg] about the centre), scoring ``f``."""
-        start = {b: turn @ T for b, T in init.items()}
-        final = pj.six_dof_pose(np.asarray(params, float), center=centre) @ answer
-        cma = CMAESResult(x=np.zeros(6), f=f, evaluations=2500, generations=25,
-                          converged=converged, history=np.linspace(0.0, -1.0, 25),
-                          final_std=0.1 if converged else 5.0)  # fmt: skip
-        stage = StageResult("stage 1", [cma], 0.0)
-        return start, Stage1Outcome(final @ tf.invert(start["sacrum"]), None, stage)
-
+    run, centre, ended = _stage1_run(cfg), _S1_CENTRE, _ended
     first, limited = ended(np.eye(4), np.zeros(6)), ended(np.eye(4), np.zeros(6), False)
     turned = [pj.six_dof_pose(np.array([0, 0, 0, a, b, 0.0]), center=centre)
               for a, b in ((20, 0), (-20, 0), (0, 20))]  # fmt: skip
@@ -337,9 +347,10 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     assert _settled(run, limited, [limited, *near, far])  # two there: settled despite the limit
     assert not _settled(run, limited, [limited, near[0], far, twisted])
     assert not _settled(run, limited, [limited])
-    assert _settled(run, first, [first])  # a lone run that stopped on a tolerance
-    lone_off = replace(run, cfg=replace(cfg, lone_run_settles=False))
-    assert not _settled(lone_off, first, [first]) and _settled(lone_off, first, [first, near[0]])
+    assert not _settled(run, first, [first])  # a lone run: unsettled by default (193 case 0)
+    assert _settled(run, first, [first, near[0]])  # until another ends there too
+    lone_on = replace(run, cfg=replace(cfg, lone_run_settles=True))
+    assert _settled(lone_on, first, [first]) and not _settled(lone_on, limited, [limited])
     assert _settled(run, first, [first, near[0], far])
     assert not _settled(run, first, [first, far, twisted])  # several starts, none agree
     off = replace(run, cfg=replace(cfg, unsettled_confirmations=0))
@@ -352,3 +363,26 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     assert not _settled(run, stuck, [stuck, far, twisted])
     no_lead = replace(run, cfg=replace(cfg, unsettled_lead=0.0))
     assert not _settled(no_lead, winner, [winner, far, twisted])
+
+
+def test_the_rescue_settles_stage_1_only_when_no_restart_did_better_elsewhere():
+    """The rescue's restarts confirm an unsettled stage-1 answer when they end where it did, but
+    not when another restart found a better answer elsewhere (seed 193 case 0: stage 1 ran
+    once, the pelvis 17.8 mm off in depth; two restarts ended there, one 18 % better at the
+    truth)."""
+    from pelvicnav.register.multibody import _found_again
+    from pelvicnav.register.settings import RegistrationSettings
+
+    run = _stage1_run(RegistrationSettings())
+    first = _ended(np.eye(4), np.zeros(6), f=-0.662)
+    turned = [pj.six_dof_pose(np.array([0, 0, 0, a, b, 0.0]), center=_S1_CENTRE)
+              for a, b in ((20, 0), (-20, 0), (0, 20), (0, -20))]  # fmt: skip
+    there = [_ended(turned[0], [0.5, 0, 0.3, 0, 0.4, 0], f=-0.6625),
+             _ended(turned[1], [0, -1.2, 0, 0.5, 0, 0], f=-0.6624)]
+    worse = _ended(turned[2], [7.0, 12.0, 0, 0, 0, 0], f=-0.667 * 0.9)
+    better = _ended(turned[3], [25.0, 8.0, -2.0, 0, 0, 0], f=-0.780)
+    assert _found_again(run, first, [*there, worse])
+    assert not _found_again(run, first, [*there, worse, better])
+    assert not _found_again(run, first, [worse, better])  # nothing ended there
+    settled = _stage1_run(RegistrationSettings(lone_run_settles=True))  # settled already
+    assert not _found_again(settled, first, [*there, worse])

@@ -138,7 +138,8 @@ def register(
     tried = _stage1_runs(run, starts, seeds)
     start, s1 = _best(tried)
     attempt = _attempt(run, start, s1)
-    settled = _settled(run, (start, s1), tried)
+    # a tracked frame's stage 1 searches nothing: it starts where the last frame settled
+    settled = not searching or _settled(run, (start, s1), tried)
     result = _judged(run, attempt, settled)
     if result.converged or guessed or not rescue:
         return result
@@ -262,7 +263,7 @@ def _settled(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
     """Whether stage 1's ``answer`` (start, outcome), the best of the runs ``tried``, stands:
     at least ``unsettled_confirmations`` of the other runs ended where it did (within
     ``unsettled_confirm_mm`` at the body's centre and as many degrees); or it stopped on a
-    tolerance and was the only run, or another one ended there too, or it leads every run that
+    tolerance and was the only run (with ``lone_run_settles``), or another one ended there too, or it leads every run that
     ended elsewhere by ``unsettled_lead`` (:func:`_leads`). With 0 confirmations, a run that
     stopped on a tolerance is settled (agreement is not counted)."""
     need = run.cfg.unsettled_confirmations
@@ -299,8 +300,9 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
             settled: bool) -> MultiBodyResult:  # fmt: skip
     """A flagged registration (whose first guess was not taken) tried again from its start
     turned out of plane (:func:`_turned`). When enough of these restarts end where ``s1`` (the
-    first attempt's stage 1) did, that answer is confirmed and the first attempt judged again
-    as settled. Otherwise the best stage-1 answer, if better than ``s1``, goes on to stage 2,
+    first attempt's stage 1) did and none scores better elsewhere (:func:`_found_again`), that
+    answer is confirmed and the first attempt judged again as settled, and returned if nothing
+    else flags it. Otherwise the best stage-1 answer, if better than ``s1``, goes on to stage 2,
     and the better-scoring result is returned; still flagged, with the first attempt's
     warnings, when it kept the pelvis where the first attempt had it (:func:`_moved_pelvis`)
     and scores less than ``rescue_margin`` better (``Stage1Settings``), unless the first
@@ -313,8 +315,10 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
     seeds = [run_seed(run.seed, RESCUE, k) for k in range(len(turned))]
     tried = _stage1_runs(run, turned, seeds)
     alone = [(init, s1)]
-    if not _settled(run, alone[0], alone) and _settled(run, alone[0], [*alone, *tried]):
-        return _judged(run, first, True)  # the restarts found stage 1's answer: judge again
+    if _found_again(run, alone[0], tried):  # the restarts found stage 1's answer
+        settled, result = True, _judged(run, first, True)
+        if result.converged:
+            return result
     start, best = _best(tried)
     if _f(best) >= _f(s1):
         return result
@@ -336,6 +340,20 @@ def _rescue(run: _Run, init: dict, s1, first: _Attempt, result: MultiBodyResult,
             f"first attempt) and a similarity less than {run.cfg.stage1.rescue_margin:g} better: "
             "the first attempt's doubts stand")  # fmt: skip
     return replace(again, converged=False, warnings=(same, *result.warnings, *again.warnings))
+
+
+def _found_again(run: _Run, first: tuple, tried: list[tuple]) -> bool:
+    """Whether the rescue's restarts ``tried`` settle the first attempt's unsettled stage-1
+    answer ``first`` (start, outcome): with them it has settled (:func:`_settled`), and none
+    that ended elsewhere scores better. A restart that found a better answer elsewhere is a
+    reason to go on, whatever the others agree on: seed 193 case 0 (stage 1 run once, the
+    pelvis 17.8 mm off in depth): two restarts ended at its answer and one 18 % better at the
+    truth."""
+    alone = [first]
+    if _settled(run, first, alone) or not _settled(run, first, [*alone, *tried]):
+        return False
+    f = _f(first[1])
+    return not any(_f(o[1]) < f and not _agree(run, first, o) for o in tried)
 
 
 def _confirmed(run: _Run, first: tuple, second: tuple) -> MultiBodyResult | None:
