@@ -377,8 +377,10 @@ def test_the_rescue_settles_stage_1_only_when_no_restart_did_better_elsewhere():
     first = _ended(np.eye(4), np.zeros(6), f=-0.662)
     turned = [pj.six_dof_pose(np.array([0, 0, 0, a, b, 0.0]), center=_S1_CENTRE)
               for a, b in ((20, 0), (-20, 0), (0, 20), (0, -20))]  # fmt: skip
-    there = [_ended(turned[0], [0.5, 0, 0.3, 0, 0.4, 0], f=-0.6625),
-             _ended(turned[1], [0, -1.2, 0, 0.5, 0, 0], f=-0.6624)]
+    there = [
+        _ended(turned[0], [0.5, 0, 0.3, 0, 0.4, 0], f=-0.6625),
+        _ended(turned[1], [0, -1.2, 0, 0.5, 0, 0], f=-0.6624),
+    ]
     worse = _ended(turned[2], [7.0, 12.0, 0, 0, 0, 0], f=-0.667 * 0.9)
     better = _ended(turned[3], [25.0, 8.0, -2.0, 0, 0, 0], f=-0.780)
     assert _found_again(run, first, [*there, worse])

@@ -263,9 +263,10 @@ def _settled(run: _Run, answer: tuple, tried: list[tuple]) -> bool:
     """Whether stage 1's ``answer`` (start, outcome), the best of the runs ``tried``, stands:
     at least ``unsettled_confirmations`` of the other runs ended where it did (within
     ``unsettled_confirm_mm`` at the body's centre and as many degrees); or it stopped on a
-    tolerance and was the only run (with ``lone_run_settles``), or another one ended there too, or it leads every run that
-    ended elsewhere by ``unsettled_lead`` (:func:`_leads`). With 0 confirmations, a run that
-    stopped on a tolerance is settled (agreement is not counted)."""
+    tolerance and was the only run (with ``lone_run_settles``), or another one ended there
+    too, or it leads every run that ended elsewhere by ``unsettled_lead`` (:func:`_leads`).
+    With 0 confirmations, a run that stopped on a tolerance is settled (agreement is not
+    counted)."""
     need = run.cfg.unsettled_confirmations
     if need == 0:
         return answer[1].result.converged
