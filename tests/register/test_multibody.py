@@ -355,10 +355,10 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     assert not _settled(run, first, [first, far, twisted])  # several starts, none agree
     off = replace(run, cfg=replace(cfg, unsettled_confirmations=0))
     assert not _settled(off, limited, [limited, *near]) and _settled(off, first, [first, far])
-    # a clear winner found once: every run that ended elsewhere scores 10 % worse or more
+    # a clear winner found once: every run that ended elsewhere scores 5 % worse or more
     winner, close = ended(np.eye(4), np.zeros(6), f=-1.2), ended(np.eye(4), np.zeros(6), f=-1.04)
     assert _settled(run, winner, [winner, far, twisted])
-    assert not _settled(run, close, [close, far, twisted])  # a lead under 10 %
+    assert not _settled(run, close, [close, far, twisted])  # a lead under 5 %
     stuck = ended(np.eye(4), np.zeros(6), False, -1.2)  # leads, but hit its generation limit
     assert not _settled(run, stuck, [stuck, far, twisted])
     no_lead = replace(run, cfg=replace(cfg, unsettled_lead=0.0))

@@ -486,11 +486,13 @@ class RegistrationSettings:
         Stage 1 has also settled when its answer stopped on a tolerance and scores better than
         every other run that ended elsewhere by at least this fraction of its own objective: a
         clear winner, found once. Measured (session 22, stage-1 objectives of every run):
-        good registrations flagged only as unsettled led by 11-20 % (seeds 197 cases 26 and 29,
-        137 case 22; 5.7-7.7 % for 211 case 36 and 181 case 23, still flagged); wrong stage-1
-        answers that stopped on a tolerance led by 2.5-9.3 % (seeds 107 case 37, 127 case 14,
-        151 case 12, 193 case 24, 179 case 1), and those above 5 % also scored below
-        ``min_similarity``. 0 switches it off.
+        good registrations flagged only as unsettled led by 5.7-20 % (seeds 197 cases 26 and
+        29, 137 case 22, 181 case 23, 211 case 36); of 28 gross registrations, the wrong
+        stage-1 answers that stopped on a tolerance led by 2.5-9.3 % (seeds 107 case 37, 127
+        case 14, 151 case 12, 193 case 24, 179 case 1), and every one above 2.8 % also scored
+        below ``min_similarity``, which flags it whatever stage 1 did. Default 0.05 (session
+        23; 0.10 before): between the wrong leads that only this rule can flag (2.5-2.8 %)
+        and the smallest good one. 0 switches it off.
     lone_run_settles : bool
         Whether a lone stage-1 run (no first guess taken, so one start) that stopped on a
         tolerance has settled (default False). False treats it as unsettled, so a weak final
@@ -528,7 +530,7 @@ class RegistrationSettings:
     unsettled_similarity: float = 0.5
     unsettled_confirm_mm: float = 2.0
     unsettled_confirmations: int = 2
-    unsettled_lead: float = 0.10
+    unsettled_lead: float = 0.05
     lone_run_settles: bool = False
     intact_limits: tuple[float, float] | None = (5.0, 5.0)
 
