@@ -331,8 +331,8 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     settle it even if it hit its generation limit; one settles an answer that stopped on a
     tolerance; several starts with none there leave it unsettled (seed 107 case 37: the others
     ended 10.6-117 mm away); a single run that stopped on a tolerance settles only with
-    ``lone_run_settles`` (off by default); one that stopped on a tolerance and leads every run
-    that ended elsewhere by ``unsettled_lead`` settles."""
+    ``lone_run_settles`` (off by default); one that leads every run that ended elsewhere by
+    ``unsettled_lead`` settles, stopped or at its generation limit."""
     from pelvicnav.register.multibody import _settled
     from pelvicnav.register.settings import RegistrationSettings
 
@@ -359,8 +359,9 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     winner, close = ended(np.eye(4), np.zeros(6), f=-1.2), ended(np.eye(4), np.zeros(6), f=-1.04)
     assert _settled(run, winner, [winner, far, twisted])
     assert not _settled(run, close, [close, far, twisted])  # a lead under 5 %
-    stuck = ended(np.eye(4), np.zeros(6), False, -1.2)  # leads, but hit its generation limit
-    assert not _settled(run, stuck, [stuck, far, twisted])
+    stuck = ended(np.eye(4), np.zeros(6), False, -1.2)  # leads, still improving at its limit
+    assert _settled(run, stuck, [stuck, far, twisted])
+    assert not _settled(run, stuck, [stuck])  # nothing to lead
     no_lead = replace(run, cfg=replace(cfg, unsettled_lead=0.0))
     assert not _settled(no_lead, winner, [winner, far, twisted])
 

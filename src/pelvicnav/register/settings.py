@@ -483,11 +483,13 @@ class RegistrationSettings:
         rescue's 4 restarts within 0.1 mm (it was flagged before). 0 confirmations: a stage 1
         that stopped on a tolerance has settled, and agreement is not counted.
     unsettled_lead : float
-        Stage 1 has also settled when its answer stopped on a tolerance and scores better than
-        every other run that ended elsewhere by at least this fraction of its own objective: a
-        clear winner, found once. Measured (session 22, stage-1 objectives of every run):
-        good registrations flagged only as unsettled led by 5.7-20 % (seeds 197 cases 26 and
-        29, 137 case 22, 181 case 23, 211 case 36); of 28 gross registrations, the wrong
+        Stage 1 has also settled when its answer scores better than every other run that ended
+        elsewhere by at least this fraction of its own objective: a clear winner, found once,
+        whether it stopped on a tolerance or was still improving at its generation limit.
+        Measured (sessions 22-23, stage-1 objectives of every run): good registrations flagged
+        only as unsettled led by 5.7-20 % (seeds 197 cases 26 and 29, 137 case 22, 181 case
+        23, 211 case 36; at the generation limit 6.7-11.6 %: 181 case 17, 179 case 36, 229
+        case 12, the others 100-380 mm away); of 28 gross registrations, the wrong
         stage-1 answers that stopped on a tolerance led by 2.5-9.3 % (seeds 107 case 37, 127
         case 14, 151 case 12, 193 case 24, 179 case 1), and every one above 2.8 % also scored
         below ``min_similarity``, which flags it whatever stage 1 did. Default 0.05 (session
