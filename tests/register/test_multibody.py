@@ -330,8 +330,8 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     """Two other stage-1 runs (from other starts) ending within 2 mm and 2 deg of the answer
     settle it even if it hit its generation limit; one settles an answer that stopped on a
     tolerance; several starts with none there leave it unsettled (seed 107 case 37: the others
-    ended 10.6-117 mm away); a single run that stopped on a tolerance settles only with
-    ``lone_run_settles`` (off by default); one that leads every run that ended elsewhere by
+    ended 10.6-117 mm away); a single run that stopped on a tolerance settles unless
+    ``lone_run_settles`` is off; one that leads every run that ended elsewhere by
     ``unsettled_lead`` settles, stopped or at its generation limit."""
     from pelvicnav.register.multibody import _settled
     from pelvicnav.register.settings import RegistrationSettings
@@ -347,10 +347,9 @@ def test_stage_1_settles_when_other_starts_end_at_its_answer():
     assert _settled(run, limited, [limited, *near, far])  # two there: settled despite the limit
     assert not _settled(run, limited, [limited, near[0], far, twisted])
     assert not _settled(run, limited, [limited])
-    assert not _settled(run, first, [first])  # a lone run: unsettled by default (193 case 0)
-    assert _settled(run, first, [first, near[0]])  # until another ends there too
-    lone_on = replace(run, cfg=replace(cfg, lone_run_settles=True))
-    assert _settled(lone_on, first, [first]) and not _settled(lone_on, limited, [limited])
+    assert _settled(run, first, [first]) and not _settled(run, limited, [limited])  # lone runs
+    lone_off = replace(run, cfg=replace(cfg, lone_run_settles=False))  # seed 193 case 0
+    assert not _settled(lone_off, first, [first]) and _settled(lone_off, first, [first, near[0]])
     assert _settled(run, first, [first, near[0], far])
     assert not _settled(run, first, [first, far, twisted])  # several starts, none agree
     off = replace(run, cfg=replace(cfg, unsettled_confirmations=0))
@@ -374,7 +373,7 @@ def test_the_rescue_settles_stage_1_only_when_no_restart_did_better_elsewhere():
     from pelvicnav.register.multibody import _found_again
     from pelvicnav.register.settings import RegistrationSettings
 
-    run = _stage1_run(RegistrationSettings())
+    run = _stage1_run(RegistrationSettings(lone_run_settles=False))
     first = _ended(np.eye(4), np.zeros(6), f=-0.662)
     turned = [pj.six_dof_pose(np.array([0, 0, 0, a, b, 0.0]), center=_S1_CENTRE)
               for a, b in ((20, 0), (-20, 0), (0, 20), (0, -20))]  # fmt: skip
@@ -387,5 +386,5 @@ def test_the_rescue_settles_stage_1_only_when_no_restart_did_better_elsewhere():
     assert _found_again(run, first, [*there, worse])
     assert not _found_again(run, first, [*there, worse, better])
     assert not _found_again(run, first, [worse, better])  # nothing ended there
-    settled = _stage1_run(RegistrationSettings(lone_run_settles=True))  # settled already
+    settled = _stage1_run(RegistrationSettings())  # a lone run that stopped has settled
     assert not _found_again(settled, first, [*there, worse])

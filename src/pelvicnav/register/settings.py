@@ -497,17 +497,19 @@ class RegistrationSettings:
         and the smallest good one. 0 switches it off.
     lone_run_settles : bool
         Whether a lone stage-1 run (no first guess taken, so one start) that stopped on a
-        tolerance has settled (default False). False treats it as unsettled, so a weak final
+        tolerance has settled (default True). False treats it as unsettled, so a weak final
         GO (below ``unsettled_similarity``) flags it and calls the rescue, whose restarts settle
         it when they end where it did and none scores better elsewhere, or find the better
         answer. Seed 193 case 0: a lone run stopped with the pelvis 17.8 mm off in depth and
-        passed unflagged; the rescue's restarts find the truth (stage-1 objective -0.780
-        against -0.662) and it ends at 0.5 mm, unflagged. Measured on the 120 registrations of
-        seeds 181, 193 and 197 (session 23): that case fixed, every other registration's
-        verdict unchanged, but each registration whose final GO is below 0.5 per view (26 of
-        40 on seed 193) runs the rescue's four stage-1 restarts: about 10 s instead of 2.5 s
-        alone on 2 cores, a median of 18-19 s instead of 5 s with two registrations at once.
-        A tracked frame (no stage-1 search) has settled where the last frame did.
+        passes unflagged by default; with False the rescue's restarts find the truth
+        (stage-1 objective -0.780 against -0.662) and it ends at 0.5 mm, unflagged. Measured
+        with False on the 360 registrations of nine seeds (session 23): that case fixed, no
+        other verdict changed, but every registration whose final GO is below 0.5 per view
+        (half or more) runs four more stage-1 runs: about 10 s instead of 2.5 s alone on 2
+        cores, and the benchmark's first registration of the 0.8 mm CT 18 s instead of 3.4 s
+        (target 5 s). Restarts with half the population are cheaper but miss 193 case 0. So
+        the default stays True: for a slower, safer first registration, set False. A tracked
+        frame (no stage-1 search) has settled where the last frame did, either way.
     intact_limits : (mm, deg) or None
         With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
         intact joints): a registration where stage 2 moved one of them further than this from
@@ -533,7 +535,7 @@ class RegistrationSettings:
     unsettled_confirm_mm: float = 2.0
     unsettled_confirmations: int = 2
     unsettled_lead: float = 0.05
-    lone_run_settles: bool = False
+    lone_run_settles: bool = True
     intact_limits: tuple[float, float] | None = (5.0, 5.0)
 
     def __post_init__(self) -> None:
