@@ -506,10 +506,11 @@ class RegistrationSettings:
         with False on the 360 registrations of nine seeds (session 23): that case fixed, no
         other verdict changed, but every registration whose final GO is below 0.5 per view
         (half or more) runs four more stage-1 runs: about 10 s instead of 2.5 s alone on 2
-        cores, and the benchmark's first registration of the 0.8 mm CT 18 s instead of 3.4 s
-        (target 5 s). Restarts with half the population are cheaper but miss 193 case 0. So
-        the default stays True: for a slower, safer first registration, set False. A tracked
-        frame (no stage-1 search) has settled where the last frame did, either way.
+        cores, and the benchmark's first registration of the 0.8 mm CT 12 s on a quiet machine
+        (18 s on a busy one) instead of 3.05 s (target 5 s). Restarts with half the
+        population are cheaper but miss 193 case 0. So the default stays True: for a slower,
+        safer first registration, set False. A tracked frame (no stage-1 search) has
+        settled where the last frame did, either way.
     intact_limits : (mm, deg) or None
         With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
         intact joints): a registration where stage 2 moved one of them further than this from
