@@ -388,3 +388,72 @@ def test_the_rescue_settles_stage_1_only_when_no_restart_did_better_elsewhere():
     assert not _found_again(run, first, [worse, better])  # nothing ended there
     settled = _stage1_run(RegistrationSettings())  # a lone run that stopped has settled
     assert not _found_again(settled, first, [*there, worse])
+
+
+def test_the_mean_beam_bisects_two_views():
+    """AP and oblique 30: the mean beam direction is turned 15 deg from each, in their plane."""
+    from pelvicnav.register.multibody import _mean_beam
+
+    P = np.stack([_carm(0, 0).projection_matrix, _carm(30, 0).projection_matrix])
+    beams = [pj.decompose_projection(p).carm_from_world[2] for p in P]
+    mean = _mean_beam(P)
+    assert np.isclose(np.linalg.norm(mean), 1.0)
+    for b in beams:
+        assert np.isclose(np.rad2deg(np.arccos(abs(mean @ b))), 15.0, atol=1e-6)
+    assert abs(mean @ np.cross(*beams)) < 1e-9
+
+
+def test_a_depth_probe_that_stays_away_gets_a_full_stage_1_run(monkeypatch):
+    """A lone stage-1 answer is probed +-20 mm along the views' mean beam: a probe that comes
+    back (within 10 mm) leaves it alone; one that stays away (seed 193 case 0: 21.6 mm away, 3 %
+    worse, not converged) gets a full stage-1 run from its answer, returned as another run;
+    one view, 9 DoF or ``probe_mm`` 0 probe nothing."""
+    import types
+
+    from pelvicnav.register import multibody as mb
+    from pelvicnav.register.stage1 import Stage1Outcome
+
+    P = np.stack([_carm(0, 0).projection_matrix, _carm(30, 0).projection_matrix])
+    beam = mb._mean_beam(P)
+    cfg = RegistrationSettings()
+    run = replace(_stage1_run(cfg), views=[None, None],
+                  levels=[types.SimpleNamespace(projections=P)])  # fmt: skip
+    lone = _ended(np.eye(4), np.zeros(6), f=-0.662)
+    centre = run.body(lone[0]).centre[None]
+    truth = tf.apply(lone[1].delta, centre)[0] + 20.0 * beam
+    calls = []
+
+    def fake_stage1(views, levels, renderer, body, settings, seed, progress=None):
+        """Probes: the one started deeper stays there, the other comes back 2 mm short; a full
+        run ends at the truth."""
+        calls.append(settings.stage1.populations[0])
+        here = tf.apply(body.start, body.centre[None])[0]
+        if settings.stage1.populations[0] == cfg.stage1.probe_population:
+            deeper = (here - truth) @ beam > -5.0
+            target = truth + 1.5 * beam if deeper and stays else None
+            f = -0.642
+            if target is None:
+                target = tf.apply(lone[1].delta, centre)[0] + 2.0 * beam
+                f = -0.657
+        else:
+            target, f = truth, -0.781
+        move = np.eye(4)
+        move[:3, 3] = target - here
+        result = _ended(np.eye(4), np.zeros(6), f=f)[1].result
+        return Stage1Outcome(move @ body.start @ tf.invert(body.start), None, result)
+
+    monkeypatch.setattr(mb, "run_stage1", fake_stage1)
+    stays = True
+    ((again, full),) = mb._probed(run, lone)
+    assert calls == [50, 50, 100]
+    ended = tf.apply(mb._body_pose(run, again, full), centre)[0]
+    assert np.allclose(ended, truth) and mb._f(full) == -0.781
+    stays, calls[:] = False, []
+    assert mb._probed(run, lone) == [] and calls == [50, 50]
+    calls[:] = []
+    for off in (
+        replace(run, views=[None]),
+        replace(run, cfg=replace(cfg, stage1=replace(cfg.stage1, probe_mm=0.0))),
+    ):
+        assert mb._probed(off, lone) == []
+    assert calls == []

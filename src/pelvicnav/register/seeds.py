@@ -10,9 +10,20 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["JOINT", "RAY", "REPASS", "RESCUE", "RESEARCH", "STAGE1", "SWEEP", "TURN", "run_seed"]
+__all__ = [
+    "JOINT",
+    "PROBE",
+    "RAY",
+    "REPASS",
+    "RESCUE",
+    "RESEARCH",
+    "STAGE1",
+    "SWEEP",
+    "TURN",
+    "run_seed",
+]
 
-STAGE1, SWEEP, JOINT, RESEARCH, REPASS, RESCUE, RAY, TURN = 1, 2, 3, 4, 5, 6, 7, 8
+STAGE1, SWEEP, JOINT, RESEARCH, REPASS, RESCUE, RAY, TURN, PROBE = 1, 2, 3, 4, 5, 6, 7, 8, 9
 
 
 def run_seed(seed: int, stage: int, *path: int) -> int:
