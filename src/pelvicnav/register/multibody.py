@@ -1,7 +1,8 @@
 """Two-stage multi-body 3D-2D registration (Han et al. 2020, section 2.2, equations 9-12).
 
 The orchestrator: check the inputs, build the pyramid (:mod:`~pelvicnav.register.pyramid`), run
-stage 1 (:mod:`~pelvicnav.register.stage1`: the pelvis as one rigid body, 6 or 9 DoF), stage 2
+stage 1 (:mod:`~pelvicnav.register.stage1`: the pelvis as one rigid body, 6 or 9 DoF; a lone run
+probed in depth, :func:`_probed`), stage 2
 (:mod:`~pelvicnav.register.stage2`: every bone's 6 DoF, sweeps or joint), the re-search of the
 dislocated bone (:mod:`~pelvicnav.register.research`), and judge the result.
 

@@ -533,8 +533,9 @@ class RegistrationSettings:
         cores, and the benchmark's first registration of the 0.8 mm CT 12 s on a quiet machine
         (18 s on a busy one) instead of 3.05 s (target 5 s). Restarts with half the
         population are cheaper but miss 193 case 0. So the default stays True: for a slower,
-        safer first registration, set False. A tracked frame (no stage-1 search) has
-        settled where the last frame did, either way.
+        safer first registration, set False. Since session 24 the depth probes
+        (``Stage1Settings.probe_mm``) catch 193 case 0 for 0.8 s. A tracked frame (no stage-1
+        search) has settled where the last frame did, either way.
     intact_limits : (mm, deg) or None
         With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
         intact joints): a registration where stage 2 moved one of them further than this from
