@@ -457,3 +457,12 @@ def test_a_depth_probe_that_stays_away_gets_a_full_stage_1_run(monkeypatch):
     ):
         assert mb._probed(off, lone) == []
     assert calls == []
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [{"probe_mm": -1.0}, {"probe_sigma": 0.0}, {"probe_population": 1}, {"probe_generations": 0}],
+)
+def test_probe_settings_are_checked(bad):
+    with pytest.raises(ValueError, match="probe_mm must be >= 0"):
+        Stage1Settings(**bad)
