@@ -46,7 +46,7 @@ from pelvicnav.register.result import MultiBodyResult, StageResult
 from pelvicnav.register.seeds import PROBE, RESCUE, run_seed
 from pelvicnav.register.settings import RegistrationSettings
 from pelvicnav.register.stage1 import pelvis_bones, run_stage1, stage1_body
-from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, sweeps
+from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, rejoined, sweeps
 
 __all__ = ["register", "register_multibody"]
 
@@ -574,6 +574,9 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
     y = np.zeros(6 * len(renderer.bones))
     search = joint if cfg.stage2.mode == "joint" else sweeps
     y, runs = search(problem, y, seed, progress)
+    if cfg.stage2.mode == "sweep":  # searching, not tracking
+        y, chosen = rejoined(problem, y)
+        runs = runs if chosen is None else [*runs, chosen]
     count = cfg.research.count(len(views)) if cfg.stage2.mode != "joint" else 0
     again = research(problem, y, views, seed, count if problem.searched else 0)
     result = StageResult("stage 2", runs, time.perf_counter() - t0, problem.final_runs, again.runs)

@@ -278,6 +278,12 @@ class Stage2Settings:
         8-47 mm off scored as well as the truth, or better by up to 0.006, and opened it 15-48
         mm. A 12 mm slack penalised true poses that opened further and left two wrong hips
         unflagged (seeds 127 and 131). ``(0, 0)`` turns the term off.
+    rejoin : (mm, deg) or None
+        With a plan and a gradient-refined finest level (searching, not tracking): a bone the
+        plan does not name that ended further than this from another such bone's pose (mm at
+        its centroid, degrees; in the CT's frame they move as one) is tried at that pose and
+        every bone refined from there; the images keep the better
+        (:func:`~pelvicnav.register.stage2.rejoined`). None: not tried.
     """
 
     enabled: bool = True
@@ -293,8 +299,11 @@ class Stage2Settings:
     attached: str = "gradient"
     gradient_iterations: int = 100
     gradient_tol: float = 1e-6
+    rejoin: tuple[float, float] | None = (1.0, 1.0)
 
     def __post_init__(self) -> None:
+        if self.rejoin is not None and (len(self.rejoin) != 2 or not min(self.rejoin) > 0):
+            raise ValueError(f"rejoin must be (mm, deg) > 0 or None, got {self.rejoin}")
         if not self.joint_prior >= 0:
             raise ValueError(f"joint_prior must be >= 0, got {self.joint_prior}")
         if len(self.joint_gap) != 2 or not min(self.joint_gap) >= 0:
