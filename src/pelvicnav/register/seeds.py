@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "FINE",
     "JOINT",
     "PROBE",
     "RAY",
@@ -23,7 +24,7 @@ __all__ = [
     "run_seed",
 ]
 
-STAGE1, SWEEP, JOINT, RESEARCH, REPASS, RESCUE, RAY, TURN, PROBE = 1, 2, 3, 4, 5, 6, 7, 8, 9
+STAGE1, SWEEP, JOINT, RESEARCH, REPASS, RESCUE, RAY, TURN, PROBE, FINE = range(1, 11)
 
 
 def run_seed(seed: int, stage: int, *path: int) -> int:

@@ -436,6 +436,17 @@ class ResearchSettings:
         ``prior.MEASURED_POINTS`` joint samples: over a random 200 of them it moved by up to
         8 mm (seed 151 case 6: 23.5 against 15.1 mm over 2000), where a tenth of the samples
         (the symphysis) lie apart from the rest. None switches it off.
+    fine_population, fine_generations, fine_sigma : int, int, float
+        With two or more views, a dislocated bone whose re-searches left a question (a warning
+        or a doubt) is searched again at the finest level alone: CMA-ES from its stage-1 pose
+        with this population, generation limit and step (mm, deg), the coarse levels skipped
+        (:func:`~pelvicnav.register.research.fine_searches`). An answer better than the kept
+        one by ``confirm_margin`` replaces it; a second such search (another seed) that ends
+        within ``ambiguity`` of it confirms it and clears the questions. Seeds 251 case 19 and
+        229 case 24 (session 25): the truth scored 0.02-0.03 better than the answer at every
+        level, yet no search from the coarse level found it (hips 17.7 and 26.5 mm off,
+        flagged); three fine-level searches from the stage-1 pose found it 3 of 3 and 1 of 3
+        times (about 4.5 s each on 2 cores). ``fine_population = 0`` switches it off.
     """
 
     restarts: int | None = None
@@ -452,8 +463,15 @@ class ResearchSettings:
     ambiguity_score: float = 0.01
     coarse_rotation_prior: float = 5e-5
     joint_limits: tuple[float, float] | None = (0.2, 20.0)
+    fine_population: int = 30
+    fine_generations: int = 60
+    fine_sigma: float = 6.0
 
     def __post_init__(self) -> None:
+        if not (self.fine_population >= 0 and self.fine_generations >= 1 and self.fine_sigma > 0):
+            raise ValueError("fine_population must be >= 0, fine_generations >= 1 and fine_sigma "
+                             f"> 0, got {self.fine_population}, {self.fine_generations}, "
+                             f"{self.fine_sigma}")  # fmt: skip
         if self.fine not in ("cmaes", "stage2"):
             raise ValueError(f"research fine must be 'cmaes' or 'stage2', got {self.fine!r}")
         if not self.confirm_margin >= 0:
