@@ -3,8 +3,10 @@
 The orchestrator: check the inputs, build the pyramid (:mod:`~pelvicnav.register.pyramid`), run
 stage 1 (:mod:`~pelvicnav.register.stage1`: the pelvis as one rigid body, 6 or 9 DoF; a lone run
 probed in depth, :func:`_probed`), stage 2
-(:mod:`~pelvicnav.register.stage2`: every bone's 6 DoF, sweeps or joint), the re-search of the
-dislocated bone (:mod:`~pelvicnav.register.research`), and judge the result.
+(:mod:`~pelvicnav.register.stage2`: every bone's 6 DoF, sweeps or joint; then the intact joints
+tried, :func:`~pelvicnav.register.stage2.rejoined`), the re-search of the dislocated bone
+(:mod:`~pelvicnav.register.research`; a bone it leaves in question searched again at the finest
+level alone), and judge the result.
 
 DRRs come from a :class:`~pelvicnav.drr.renderer.Renderer`: splatted point models
 (:func:`register_multibody` builds them from a CT and label map) or the ray-cast reference

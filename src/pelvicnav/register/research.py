@@ -17,6 +17,11 @@ the stage-1 pose find the other one by chance only (:func:`_ray_starts`; see
 :class:`~pelvicnav.register.settings.ResearchSettings` ``ray_mm``). And it is turned by 20 degrees
 either way about each axis through its centroid: a hip can also keep to a basin turned that far
 from the truth (:func:`_turn_starts`, ``turn_deg``).
+
+A bone still in question after all that (a warning or a doubt) is searched once more at the
+finest level alone, from its stage-1 pose (:func:`fine_searches`): the coarse level can keep every
+search in a basin where the truth scores better at every level. A clear winner replaces the
+answer; confirmed by a second search, it withdraws the questions.
 """
 
 from __future__ import annotations
