@@ -4,8 +4,8 @@
 Registration study seed 251 case 19 (the real atlas, so CI only): the right hip dislocated
 12.8 mm / 5.5 deg. Every search from the coarse level ended 17.7 mm off (mostly in depth), where
 the images score 0.02 less than the truth at both levels; the registration was flagged (two
-answers within 0.01, the answer found once only). The fine-level searches from the stage-1 pose
-find the truth, and two of them agree.
+answers within 0.01, the answer found once only). The fine-level search from the stage-1 pose
+finds the truth; the registration stays flagged (its questions stand).
 """
 
 from __future__ import annotations
@@ -39,4 +39,4 @@ def test_with_the_shipped_defaults_a_hip_the_coarse_level_kept_off_is_found_at_t
                              seed=case["registration_seed"])  # fmt: skip
     errors = {r["bone"]: r["error_mm"] for r in _errors(sim, res)}
     assert max(errors.values()) < 1.0, errors  # measured: 0.07 / 0.16 / 0.19 mm
-    assert res.converged, res.warnings
+    assert not res.converged and any("fine-level search" in w for w in res.warnings)

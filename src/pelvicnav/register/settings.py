@@ -441,12 +441,13 @@ class ResearchSettings:
         or a doubt) is searched again at the finest level alone: CMA-ES from its stage-1 pose
         with this population, generation limit and step (mm, deg), the coarse levels skipped
         (:func:`~pelvicnav.register.research.fine_searches`). An answer better than the kept
-        one by ``confirm_margin`` replaces it; a second such search (another seed) that ends
-        within ``ambiguity`` of it confirms it and clears the questions. Seeds 251 case 19 and
-        229 case 24 (session 25): the truth scored 0.02-0.03 better than the answer at every
-        level, yet no search from the coarse level found it (hips 17.7 and 26.5 mm off,
-        flagged); three fine-level searches from the stage-1 pose found it 3 of 3 and 1 of 3
-        times (about 4.5 s each on 2 cores). ``fine_population = 0`` switches it off.
+        one by ``confirm_margin`` replaces it; the registration stays flagged. Seeds 251 case 19
+        and 229 case 24 (session 25): the truth scored 0.02-0.03 better than the answer at
+        every level, yet no search from the coarse level found it (hips 17.7 and 26.5 mm off);
+        fine-level searches from the stage-1 pose found it 3 of 3 and 1 of 3 times (about
+        4.5 s each on 2 cores); on seed 239 case 33 they found a hip 7.2 mm off, better than the
+        kept one (32 mm off) but not the truth, so the flag is not lifted.
+        ``fine_population = 0`` switches it off.
     """
 
     restarts: int | None = None
