@@ -11,31 +11,17 @@ left unflagged.
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
+from tests.helpers.atlas_cases import atlas_study_case
 
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.io.atlas import load_atlas
 from pelvicnav.register.multibody import register_multibody
-from pelvicnav.studies.registration import (
-    RegistrationStudySettings,
-    registration_study,
-    simulate_registration_case,
-)
 
 
 @pytest.mark.slow
 def test_with_the_shipped_defaults_a_pelvis_misplaced_by_stage_1_is_flagged():
-    path = os.environ.get("PELVICNAV_ATLAS")
-    if not path or not Path(path).is_dir():
-        pytest.skip("PELVICNAV_ATLAS is not set to a folder: the real Han atlas is not available")
-    study = registration_study(load_atlas(path), RegistrationStudySettings(n_cases=31, seed=167))
-    case = study.cases[30]
-    sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
-                                     settings=case["settings"])  # fmt: skip
+    case, sim = atlas_study_case(167, 30)
     assert sim["bone"] == "left_hip"
     res = register_multibody(sim["ct"], sim["labels"], sim["views"], dislocated=sim["bone"],
                              seed=case["registration_seed"])  # fmt: skip

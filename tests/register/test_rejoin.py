@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
+from tests.helpers.atlas_cases import atlas_study_case
 from tests.helpers.bodies import blob
 
 from pelvicnav.drr.renderer import SplatRenderer
@@ -103,22 +101,10 @@ def test_with_the_shipped_defaults_an_intact_hip_the_coarse_level_pulled_off_is_
     pulled the intact right hip 3.1 mm / 4.9 deg off the sacrum, the fine level's refinement
     kept it there and the intact-joint limit flagged a registration whose dislocated hip was
     found (0.74 mm). The hip at the sacrum's pose scores better at the fine level."""
-    from pelvicnav.io.atlas import load_atlas
     from pelvicnav.register.multibody import register_multibody
-    from pelvicnav.studies.registration import (
-        RegistrationStudySettings,
-        _errors,
-        registration_study,
-        simulate_registration_case,
-    )
+    from pelvicnav.studies.registration import _errors
 
-    path = os.environ.get("PELVICNAV_ATLAS")
-    if not path or not Path(path).is_dir():
-        pytest.skip("PELVICNAV_ATLAS is not set to a folder: the real Han atlas is not available")
-    study = registration_study(load_atlas(path), RegistrationStudySettings(n_cases=21, seed=229))
-    case = study.cases[20]
-    sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
-                                     settings=case["settings"])  # fmt: skip
+    case, sim = atlas_study_case(229, 20)
     res = register_multibody(sim["ct"], sim["labels"], sim["views"], dislocated=sim["bone"],
                              seed=case["registration_seed"])  # fmt: skip
     errors = {r["bone"]: r["error_mm"] for r in _errors(sim, res)}

@@ -50,7 +50,7 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None
     monkeypatch.setattr(rs, "_implausible",
                         lambda problem, i, y, X: np.array(joints[len(calls) - 1]))  # fmt: skip
     monkeypatch.setattr(rs, "_joint_warning", lambda problem, i, y: final)
-    monkeypatch.setattr(rs, "fine_searches", fine or (lambda *args: None))
+    monkeypatch.setattr(rs, "fine_search", fine or (lambda *args: None))
     problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
                               settings=RegistrationSettings(), searched=[0, 1],
                               prior=None)  # fmt: skip
@@ -257,7 +257,7 @@ def test_joint_limits_are_checked():
 
 
 def _fine(monkeypatch, f, population=30):
-    """:func:`research.fine_searches` with its CMA-ES run returning ``f`` (x all 1) and
+    """:func:`research.fine_search` with its CMA-ES run returning ``f`` (x all 1) and
     ``_compare`` 17.7 mm / 8 deg; the kept answer scores -1.0 and has a question asked."""
     runs = []
 
@@ -276,7 +276,7 @@ def _fine(monkeypatch, f, population=30):
         objective=lambda i, y, level: lambda X: np.full(len(X), -1.0),
     )  # fmt: skip
     out = rs.ResearchOutcome(np.zeros(18), warnings=["two searches for left_hip ... do not pin"])
-    rs.fine_searches(problem, 1, 2, 0, [None, None], out)
+    rs.fine_search(problem, 1, 2, 0, [None, None], out)
     return out, runs
 
 

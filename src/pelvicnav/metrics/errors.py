@@ -10,7 +10,7 @@ from numpy.typing import ArrayLike, NDArray
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
 
-__all__ = ["pose_disagreement"]
+__all__ = ["pose_disagreement", "pose_distance"]
 
 
 def pose_disagreement(
@@ -33,6 +33,12 @@ def pose_disagreement(
         duv = pj.project(P, tf.apply(T_a, pts)) - pj.project(P, tf.apply(T_b, pts))
         dr, dc = pixel_spacing[0]
         return float(np.median(np.linalg.norm(duv * [dc, dr], axis=1))), 0.0
+    return pose_distance(T_a, T_b, centroid)
+
+
+def pose_distance(T_a: NDArray, T_b: NDArray, centroid: ArrayLike) -> tuple[float, float]:
+    """Two poses (``world_from_ct``) of one bone: (mm between them at ``centroid`` (3,) CT mm,
+    degrees of the rotation between them)."""
     c = np.asarray(centroid, dtype=np.float64)[None]
     D = T_b @ tf.invert(T_a)
     return (

@@ -19,7 +19,7 @@ either way about each axis through its centroid: a hip can also keep to a basin 
 from the truth (:func:`_turn_starts`, ``turn_deg``).
 
 A bone still in question after all that (a warning or a doubt) is searched once more at the
-finest level alone, from its stage-1 pose (:func:`fine_searches`): the coarse level can keep every
+finest level alone, from its stage-1 pose (:func:`fine_search`): the coarse level can keep every
 search in a basin where the truth scores better at every level. A clear winner replaces the
 answer; the questions stand.
 """
@@ -39,7 +39,7 @@ from pelvicnav.register.cmaes import CMAESResult, minimize_cmaes
 from pelvicnav.register.seeds import FINE, RAY, REPASS, RESEARCH, TURN, run_seed
 from pelvicnav.register.stage2 import Stage2Problem, with_block
 
-__all__ = ["ResearchOutcome", "fine_searches", "research"]
+__all__ = ["ResearchOutcome", "fine_search", "research"]
 
 RAY_STEP_MM = 2.0  # the ray probe's step (the coarse level's samples are 3 mm apart)
 
@@ -245,14 +245,14 @@ def research(
         if count and len(views) > 1:
             _probe_searches(problem, i, r, seed, views, out)
             if len(out.warnings) + len(out.doubts) > asked:  # a question left
-                fine_searches(problem, i, r, seed, views, out)
+                fine_search(problem, i, r, seed, views, out)
         joints = _joint_warning(problem, i, out.y)
         if joints:
             out.warnings.append(joints)
     return out
 
 
-def fine_searches(problem: Stage2Problem, i: int, r: int, seed: int, views: ViewSet,
+def fine_search(problem: Stage2Problem, i: int, r: int, seed: int, views: ViewSet,
                   out: ResearchOutcome) -> None:  # fmt: skip
     """Bone ``i`` searched at the finest level alone from its stage-1 pose (``ResearchSettings``
     ``fine_population``, ``fine_generations``, ``fine_sigma``), for a bone whose re-searches
@@ -268,9 +268,9 @@ def fine_searches(problem: Stage2Problem, i: int, r: int, seed: int, views: View
     rs = problem.settings.research
     if rs.fine_population == 0:
         return
-    sl, box = slice(6 * i, 6 * i + 6), problem.box(i)
-    f_now = float(problem.objective(i, out.y, problem.fine)(out.y[None, sl])[0])
-    res = minimize_cmaes(problem.objective(i, out.y, problem.fine), np.zeros(6),
+    box, objective = problem.box(i), problem.objective(i, out.y, problem.fine)
+    f_now = float(objective(out.y[None, 6 * i : 6 * i + 6])[0])
+    res = minimize_cmaes(objective, np.zeros(6),
                          sigma=rs.fine_sigma, population=rs.fine_population,
                          seed=run_seed(seed, FINE, i), max_generations=rs.fine_generations,
                          bounds=(-box, box))  # fmt: skip

@@ -440,7 +440,7 @@ class ResearchSettings:
         With two or more views, a dislocated bone whose re-searches left a question (a warning
         or a doubt) is searched again at the finest level alone: CMA-ES from its stage-1 pose
         with this population, generation limit and step (mm, deg), the coarse levels skipped
-        (:func:`~pelvicnav.register.research.fine_searches`). An answer better than the kept
+        (:func:`~pelvicnav.register.research.fine_search`). An answer better than the kept
         one by ``confirm_margin`` replaces it; the registration stays flagged. Seeds 251 case 19
         and 229 case 24 (session 25): the truth scored 0.02-0.03 better than the answer at
         every level, yet no search from the coarse level found it (hips 17.7 and 26.5 mm off);

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from pelvicnav.drr.renderer import Renderer
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
+from pelvicnav.metrics.errors import pose_distance
 from pelvicnav.register.cmaes import CMAESResult, minimize_cmaes
 from pelvicnav.register.gradient import GradientProblem, refine_gradient, supports_gradient
 from pelvicnav.register.local import refine_local
@@ -296,7 +297,13 @@ def rejoined(problem: Stage2Problem, y: NDArray) -> tuple[NDArray, CMAESResult |
     score = partial(_joint_objective, problem=problem, level=level)
     best, f_best, chosen = y, float(score(y[None])[0]), None
     for k in held:
-        moved = [i for i in held if i != k and np.any(_apart(problem, i, T[i], T[k]) > lim)]
+        centroid = problem.renderer.centroid
+        moved = [
+            i
+            for i in held
+            if i != k
+            and np.any(np.array(pose_distance(T[i], T[k], centroid(problem.blocks.bones[i]))) > lim)
+        ]
         if not moved:
             continue
         c = y.copy()
@@ -310,14 +317,6 @@ def rejoined(problem: Stage2Problem, y: NDArray) -> tuple[NDArray, CMAESResult |
         if f < f_best:
             best, f_best, chosen = c, f, res
     return best, chosen
-
-
-def _apart(problem: Stage2Problem, i: int, T_a: NDArray, T_b: NDArray) -> NDArray[np.float64]:
-    """Bone ``i`` at ``T_a`` and ``T_b``: (mm at its CT centroid, degrees) apart."""
-    c = problem.renderer.centroid(problem.blocks.bones[i])[None]
-    mm = np.linalg.norm(tf.apply(T_a, c) - tf.apply(T_b, c))
-    E = T_a[:3, :3].T @ T_b[:3, :3]
-    return np.array([mm, np.rad2deg(np.linalg.norm(tf.rotvec_from_matrix(E)))])
 
 
 def joint(
