@@ -115,6 +115,42 @@ def test_decomposition(carm):
     np.testing.assert_allclose(pj.depth(P, np.asarray(carm.isocenter)), carm.source_to_isocenter)
 
 
+@given(st.lists(carms(), min_size=1, max_size=4), st.floats(-5.0, 5.0))
+def test_batched_normalisation_and_intrinsics_equal_the_decomposition(carms_, scale):
+    Ps = np.stack([c.projection_matrix for c in carms_]) * (scale if abs(scale) > 0.01 else 1.0)
+    normal = pj.normalize_projections(Ps)
+    K = pj.intrinsics_of(Ps)
+    for P, N, k in zip(Ps, normal, K, strict=True):
+        np.testing.assert_allclose(N, pj.normalize_projection(P), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(k, pj.decompose_projection(P).intrinsics, rtol=1e-9, atol=1e-7)
+
+
+def test_batched_normalisation_reports_the_one_matrix_error():
+    Ps = np.stack([pj.CArm().projection_matrix] * 3)
+    Ps[1, 2, :3] = Ps[1, 0, :3]
+    with pytest.raises(ValueError, match="singular"):
+        pj.normalize_projections(Ps)
+    Ps[1] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        pj.intrinsics_of(Ps)
+    with pytest.raises(ValueError, match=r"\(N, 3, 4\)"):
+        pj.normalize_projections(Ps[0])
+
+
+@given(carms(), st.lists(st.floats(-40, 40), min_size=6, max_size=6))
+def test_projections_from_sources_equal_one_geometry_each(carm, offsets):
+    g = carm.nine_dof()
+    kw = {"rows": carm.rows, "cols": carm.cols, "pixel_spacing": carm.pixel_spacing}
+    sources = np.asarray(g.source_in_detector) + np.reshape(offsets, (2, 3))
+    batch = pj.projections_from_sources(sources, g.world_from_detector, **kw)
+    for s, P in zip(sources, batch, strict=True):  # each: its own source, the shared detector
+        back = pj.nine_dof_from_projection(P, **kw)
+        np.testing.assert_allclose(back.source_in_detector, s, atol=1e-6)
+        np.testing.assert_allclose(back.world_from_detector, g.world_from_detector, atol=1e-7)
+    with pytest.raises(ValueError, match="s_z > 0"):
+        pj.projections_from_sources(-sources, g.world_from_detector, **kw)
+
+
 @given(carms(), st.lists(st.floats(0, 1000), min_size=2, max_size=2), st.floats(100, 1000))
 def test_backprojected_rays_project_back(carm, pixel, t):
     P = carm.projection_matrix

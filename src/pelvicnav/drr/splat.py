@@ -141,26 +141,11 @@ def _stacked(models: tuple[PointModel, ...]) -> tuple[NDArray, NDArray, NDArray]
     return pts, mass, offsets
 
 
-def _normalized(P: NDArray) -> NDArray[np.float64]:
-    """:func:`~pelvicnav.geometry.projection.normalize_projection`, remembered per matrix."""
-    return _normalized_of(np.ascontiguousarray(P, dtype=np.float64).tobytes())
-
-
-@functools.lru_cache(maxsize=256)
-def _normalized_of(P_bytes: bytes) -> NDArray[np.float64]:
-    P = pj.normalize_projection(np.frombuffer(P_bytes).reshape(3, 4))
-    P.flags.writeable = False
-    return P
-
-
-def _intrinsics(P: NDArray) -> tuple[float, float, float, float]:
-    return _intrinsics_of(np.ascontiguousarray(P, dtype=np.float64).tobytes())
-
-
-@functools.lru_cache(maxsize=64)  # the same few views are rendered thousands of times
-def _intrinsics_of(P_bytes: bytes) -> tuple[float, float, float, float]:
-    K = pj.decompose_projection(np.frombuffer(P_bytes).reshape(3, 4)).intrinsics
-    return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+def _normalized_intrinsics(Ps: NDArray) -> tuple[NDArray, NDArray]:
+    """``(N, 3, 4)`` normalised projections and their ``(N, 4)`` ``fx, fy, cx, cy`` (pixels)."""
+    Ps = pj.normalize_projections(Ps)
+    K = pj.intrinsics_of(Ps)
+    return Ps, np.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], axis=1)
 
 
 def splat(
@@ -208,8 +193,8 @@ def splat(
     if rows < 1 or cols < 1:
         raise ValueError(f"image shape must be positive, got {shape}")
     n_views = Ps.shape[1]
-    Ps = np.stack([_normalized(P) for P in Ps.reshape(-1, 3, 4)])
-    intr = np.array([_intrinsics(P) for P in Ps]).reshape(-1, n_views, 4)
+    Ps, intr = _normalized_intrinsics(Ps.reshape(-1, 3, 4))
+    intr = intr.reshape(-1, n_views, 4)
     Ps = Ps.reshape(-1, n_views, 3, 4)
     M = np.einsum("bkij,bljm->bklim", np.broadcast_to(Ps, (T.shape[0], *Ps.shape[1:])), T)
     pts, mass, offsets = _stacked(tuple(models))
@@ -283,8 +268,8 @@ def splat_pullback(
     if Ps.ndim != 3 or Ps.shape[1:] != (3, 4) or G.ndim != 3 or len(G) != len(Ps):
         raise ValueError(f"need (K, 3, 4) projections and (K, rows, cols) gradients, got "
                          f"{Ps.shape} and {G.shape}")  # fmt: skip
-    Ps = np.stack([_normalized(P) for P in Ps])
-    intr = np.array([_intrinsics(P) for P in Ps])[None]
+    Ps, intr = _normalized_intrinsics(Ps)
+    intr = intr[None]
     M = np.einsum("kij,ljm->klim", Ps, T)[None]
     radius, pad = _blur_radius(models[0], M, intr)
     pts, mass, _ = _stacked(tuple(models))

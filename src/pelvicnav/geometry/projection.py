@@ -306,6 +306,56 @@ def normalize_projection(P: ArrayLike) -> NDArray[np.float64]:
     return P / scale
 
 
+def normalize_projections(Ps: ArrayLike) -> NDArray[np.float64]:
+    """:func:`normalize_projection` of each matrix of a stack ``(N, 3, 4)``, vectorised.
+
+    The batch is checked at once (finite, ``|det| > 1e-12 |M|^3``); a stack that fails is
+    checked matrix by matrix, so the error (or the result) is exactly the one-matrix function's.
+    """
+    P = np.asarray(Ps, dtype=np.float64)
+    if P.ndim != 3 or P.shape[1:] != (3, 4):
+        raise ValueError(f"projection matrices must have shape (N, 3, 4), got {P.shape}")
+    M = P[:, :, :3]
+    with np.errstate(invalid="ignore"):  # a NaN matrix is reported below
+        det = np.linalg.det(M)
+    size = np.sqrt(np.einsum("nij,nij->n", M, M))
+    clear = np.isfinite(P).all(axis=(1, 2)) & (np.abs(det) > 1e-12 * size**3)
+    if not clear.all():
+        return np.stack([normalize_projection(p) for p in P]) if len(P) else P.copy()
+    scale = np.linalg.norm(M[:, 2], axis=1) * np.sign(det)
+    return P / scale[:, None, None]
+
+
+def intrinsics_of(Ps: ArrayLike) -> NDArray[np.float64]:
+    """Intrinsics ``K`` (``K[2, 2] = 1``, positive diagonal) of a stack of projections ``(..., 3, 4)``.
+
+    The closed form of :func:`decompose_projection`'s RQ decomposition (Gram-Schmidt from the
+    last row of ``M = K R``), vectorised: for many matrices (a 9-DoF search renders every
+    candidate through its own geometry) it is ~1000x faster than one RQ each.
+
+    Returns
+    -------
+    (..., 3, 3) float64
+    """
+    P = np.asarray(Ps, dtype=np.float64)
+    if P.shape[-2:] != (3, 4):
+        raise ValueError(f"projection matrices must have shape (..., 3, 4), got {P.shape}")
+    P = normalize_projections(P.reshape(-1, 3, 4))
+    m1, m2, r3 = P[:, 0, :3], P[:, 1, :3], P[:, 2, :3]  # |r3| = 1 after normalisation
+    cy = np.einsum("ni,ni->n", m2, r3)
+    q2 = m2 - cy[:, None] * r3
+    fy = np.linalg.norm(q2, axis=1)
+    r2 = q2 / fy[:, None]
+    cx = np.einsum("ni,ni->n", m1, r3)
+    skew = np.einsum("ni,ni->n", m1, r2)
+    fx = np.linalg.norm(m1 - skew[:, None] * r2 - cx[:, None] * r3, axis=1)
+    K = np.zeros((len(P), 3, 3))
+    K[:, 0] = np.stack([fx, skew, cx], axis=1)
+    K[:, 1, 1:] = np.stack([fy, cy], axis=1)
+    K[:, 2, 2] = 1.0
+    return K.reshape(*np.shape(Ps)[:-2], 3, 3)
+
+
 def decompose_projection(P: ArrayLike) -> ProjectionDecomposition:
     """RQ-decompose a projection matrix into intrinsics, rotation and source position.
 
@@ -456,14 +506,46 @@ def projection_from_nine_dof(
     ``K(T_s) = [[s_z, 0, s_x], [0, s_z, s_y], [0, 0, 1]]`` projects onto the detector in mm relative
     to its centre; ``A`` converts mm to pixels (spacing and the centre pixel).
     """
+    return projections_from_sources(
+        np.asarray(geometry.source_in_detector)[None], geometry.world_from_detector,
+        rows=rows, cols=cols, pixel_spacing=pixel_spacing,
+    )[0]  # fmt: skip
+
+
+def projections_from_sources(
+    sources: ArrayLike, world_from_detector: ArrayLike, *, rows: int, cols: int,
+    pixel_spacing: ArrayLike,
+) -> NDArray[np.float64]:  # fmt: skip
+    """:func:`projection_from_nine_dof` for N source positions of one detector pose, vectorised.
+
+    Parameters
+    ----------
+    sources : (N, 3) float, mm
+        ``source_in_detector`` of each geometry (``s_z > 0``).
+    world_from_detector : (4, 4) float
+        The detector's rigid pose, shared.
+
+    Returns
+    -------
+    (N, 3, 4) float64
+        Normalised projection matrices.
+    """
     _check_detector(rows, cols)
     dr, dc = _pixel_spacing(pixel_spacing)
-    sx, sy, sz = geometry.source_in_detector
-    K = np.array([[sz, 0.0, sx], [0.0, sz, sy], [0.0, 0.0, 1.0]])
+    s = np.asarray(sources, dtype=np.float64)
+    if s.ndim != 2 or s.shape[1] != 3 or not np.all(np.isfinite(s)) or np.any(s[:, 2] <= 0):
+        raise ValueError("source positions must be (N, 3) finite numbers with s_z > 0 (mm)")
+    T = np.asarray(world_from_detector, dtype=np.float64)
+    tf.se3_log(T)  # validates: finite, rigid
+    K = np.zeros((len(s), 3, 3))
+    K[:, 0, 0] = K[:, 1, 1] = s[:, 2]
+    K[:, :2, 2] = s[:, :2]
+    K[:, 2, 2] = 1.0
+    shift = np.zeros((len(s), 3, 4))
+    shift[:, :, :3] = np.eye(3)
+    shift[:, :, 3] = -s * np.array([1.0, 1.0, -1.0])
     A = np.array([[1 / dc, 0.0, (cols - 1) / 2.0], [0.0, 1 / dr, (rows - 1) / 2.0], [0, 0, 1.0]])
-    shift = np.hstack([np.eye(3), -np.array([[sx], [sy], [-sz]])])
-    detector_from_world = tf.invert(geometry.world_from_detector)
-    return normalize_projection(A @ K @ shift @ detector_from_world)
+    return normalize_projections(A @ K @ shift @ tf.invert(T))
 
 
 def nine_dof_from_projection(

@@ -42,7 +42,8 @@ _METRICS = {"go": GradientOrientation, "gncc": GradientNCC}
 
 
 def downsample_projection(P: ArrayLike, factor: float) -> NDArray[np.float64]:
-    """Projection matrix of the same view on a detector binned by ``factor``.
+    """Projection matrix of the same view on a detector binned by ``factor`` (``(3, 4)`` or a
+    stack ``(..., 3, 4)``).
 
     Pixel centres stay at integers: a binned pixel ``u'`` covers original pixels
     ``factor * u' ... factor * u' + factor - 1``, so ``u' = (u - (factor - 1) / 2) / factor``.
@@ -56,7 +57,10 @@ def downsample_projection(P: ArrayLike, factor: float) -> NDArray[np.float64]:
             [0, 0, 1],
         ]
     )
-    return S @ pj.normalize_projection(P)
+    P = np.asarray(P, dtype=np.float64)
+    if P.ndim == 2:
+        return S @ pj.normalize_projection(P)
+    return S @ pj.normalize_projections(P.reshape(-1, 3, 4)).reshape(P.shape)
 
 
 def downsample_image(image: ArrayLike, factor: int) -> NDArray[np.float64]:

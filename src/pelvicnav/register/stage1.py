@@ -140,20 +140,21 @@ class NineDof:
         """``(N, 9) -> (N, 4, 4)`` ``world_from_ct`` of the body's first bone."""
         return _rigid(X, self.centre_world, self.start)
 
-    def _full(self, xi: NDArray) -> NDArray[np.float64]:
-        s = np.asarray(self.geometry.source_in_detector) + xi[6:]
-        g = pj.NineDof(tuple(s), self.geometry.world_from_detector)
-        return pj.projection_from_nine_dof(
-            g, rows=self.rows, cols=self.cols, pixel_spacing=self.pixel_spacing
-        )
+    def _full(self, X: NDArray) -> NDArray[np.float64]:
+        """``(N, 9) -> (N, 3, 4)``: the view's full-resolution ``P`` at each candidate source."""
+        return pj.projections_from_sources(
+            np.asarray(self.geometry.source_in_detector) + X[:, 6:],
+            self.geometry.world_from_detector,
+            rows=self.rows, cols=self.cols, pixel_spacing=self.pixel_spacing,
+        )  # fmt: skip
 
     def projections(self, X: NDArray, level: Level) -> NDArray[np.float64]:
         """One binned ``P`` per candidate: (N, 1, 3, 4)."""
-        return np.stack([downsample_projection(self._full(xi), level.factor) for xi in X])[:, None]
+        return downsample_projection(self._full(X), level.factor)[:, None]
 
     def final_projections(self, x: NDArray, views: ViewSet) -> tuple[NDArray, ...]:
         """The refined full-resolution geometry of the one view."""
-        return (pj.normalize_projection(downsample_projection(self._full(x), 1)),)
+        return (self._full(np.asarray(x)[None])[0],)
 
     def recentred(self, x: NDArray) -> NineDof:
         """The same parameterisation with its zero (and box) moved to ``x``."""
