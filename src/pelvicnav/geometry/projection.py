@@ -327,7 +327,7 @@ def normalize_projections(Ps: ArrayLike) -> NDArray[np.float64]:
 
 
 def intrinsics_of(Ps: ArrayLike) -> NDArray[np.float64]:
-    """Intrinsics ``K`` (``K[2, 2] = 1``, positive diagonal) of a stack of projections ``(..., 3, 4)``.
+    """Intrinsics ``K`` (``K[2, 2] = 1``, positive diagonal) of projections ``(..., 3, 4)``.
 
     The closed form of :func:`decompose_projection`'s RQ decomposition (Gram-Schmidt from the
     last row of ``M = K R``), vectorised: for many matrices (a 9-DoF search renders every
