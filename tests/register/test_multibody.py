@@ -170,7 +170,10 @@ def test_a_bone_the_images_cannot_pin_down_is_flagged(phantom):
     ct2 = Volume(hu, A)
     truth = {b: np.eye(4) for b in BONES}
     views = _views(ct2, lab, truth, [_carm(0, 0), _carm(30, -20)])
-    res = register_multibody(ct2, lab, views, seed=3, settings=FAST, dislocated="left_hip")
+    # the rescue's restarts (flagged -> stage 1 from turned starts) are another test's subject:
+    # off here, they took 53 of this registration's 78 s and found the same ambiguity
+    once = replace(FAST, stage1=replace(FAST.stage1, rescue_turn_deg=0.0))
+    res = register_multibody(ct2, lab, views, seed=3, settings=once, dislocated="left_hip")
     c = np.array([55.0, -5.0, -5.0])
     err = np.linalg.norm(tf.apply(res.poses["left_hip"], c[None]) - c)
     assert err < 1.5  # its centre is well determined ...
