@@ -10,21 +10,13 @@ better. With the interpenetration term alone 0.52 mm; with both terms (``PRIOR``
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
+from tests.helpers.atlas_cases import atlas_study_case
 
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.io.atlas import load_atlas
 from pelvicnav.register.multibody import register_multibody
 from pelvicnav.register.settings import RegistrationSettings, Stage2Settings
-from pelvicnav.studies.registration import (
-    RegistrationStudySettings,
-    registration_study,
-    simulate_registration_case,
-)
 
 # the prior as session 18 measured it (off by default: the out-of-plane capture test's hip
 # ended 1.69 mm off with it, over that test's 1.5 mm)
@@ -34,14 +26,7 @@ PRIOR = RegistrationSettings(stage2=Stage2Settings(joint_prior=0.1, joint_gap=(0
 @pytest.fixture(scope="module")
 def case30():
     """Seed 131, case 30, simulated once for this file (the real atlas, or skip)."""
-    path = os.environ.get("PELVICNAV_ATLAS")
-    if not path or not Path(path).is_dir():
-        pytest.skip("PELVICNAV_ATLAS is not set to a folder: the real Han atlas is not available")
-    study = registration_study(load_atlas(path),
-                               RegistrationStudySettings(n_cases=31, seed=131))  # fmt: skip
-    case = study.cases[30]
-    sim = simulate_registration_case(case["vertices"], case["faces"], seed=case["seed"],
-                                     settings=case["settings"])  # fmt: skip
+    case, sim = atlas_study_case(131, 30)
     assert sim["bone"] == "left_hip"
     return case, sim
 
