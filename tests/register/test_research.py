@@ -72,10 +72,26 @@ def test_a_far_losing_re_search_earns_one_more_and_a_second_miss_flags(monkeypat
     assert out.disagreement["left_hip"] == pytest.approx(13.5)
 
 
-def test_a_far_winning_re_search_takes_over_without_a_retry(monkeypatch):
-    out, calls = _run(monkeypatch, [(-1.2, 13.5)])
-    assert calls == [0] and not out.warnings
+def test_a_far_winning_re_search_takes_over_and_needs_confirming(monkeypatch):
+    # seed 3 case 15: the sweeps' hip and a re-search's 18.8 mm apart, the re-search winning by
+    # 0.038; both wrong (the truth 0.013 better), and nothing else asked
+    out, calls = _run(monkeypatch, [(-1.2, 13.5), (-0.99, 0.5)])
+    assert calls == [0, 1] and not out.warnings  # the retry found the new answer again
     assert np.all(out.y[6:12] == 1.0)  # the left hip's block is the re-search's
+    out, calls = _run(monkeypatch, [(-1.2, 13.5), (-0.99, 18.8)])
+    assert calls == [0, 1]
+    assert np.all(out.y[6:12] == 1.0)
+    assert any("replaced the sweeps' answer" in w for w in out.warnings), out.warnings
+
+
+def test_an_answer_replaced_twice_gets_one_more_search_and_no_more(monkeypatch):
+    out, calls = _run(monkeypatch, [(-1.2, 13.5), (-1.3, 18.8), (-0.99, 0.5)])
+    assert calls == [0, 1, 2] and not out.warnings  # the third search found the second's again
+    assert np.all(out.y[6:12] == 2.0)
+    out, calls = _run(monkeypatch, [(-1.2, 13.5), (-1.3, 18.8), (-1.4, 9.0)])
+    assert calls == [0, 1, 2]  # never found twice: flagged
+    assert np.all(out.y[6:12] == 3.0)
+    assert any("found once only" in w for w in out.warnings), out.warnings
 
 
 def test_a_far_re_search_that_wins_narrowly_needs_confirming(monkeypatch):
@@ -211,9 +227,9 @@ def test_the_flag_reads_the_images_not_the_prior(monkeypatch):
     assert calls == [0, 1]  # a narrow far win on the images: confirmed by one more search
     assert np.all(out.y[6:12] == 1.0)  # the alternative was taken
     assert any("do not pin its pose down" in w for w in out.warnings)
-    # the same win on the images too: no warning, no retry
-    out, calls = _run(monkeypatch, [(-1.023, 19.4)])
-    assert calls == [0] and not out.warnings
+    # the same win on the images too: no warning once a retry finds it again
+    out, calls = _run(monkeypatch, [(-1.023, 19.4), (-0.99, 0.5)])
+    assert calls == [0, 1] and not out.warnings
 
 
 def test_an_implausible_other_answer_is_a_doubt_not_a_warning(monkeypatch):

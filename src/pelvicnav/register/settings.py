@@ -382,7 +382,13 @@ class ResearchSettings:
         one more re-search, and if that one ends far from it too, the new answer was found once
         and the registration is flagged. Seed 137 case 16: the hip's sweeps and its re-search
         ended 14.4 mm apart, the re-search winning by 0.011; its answer was 17.5 mm off,
-        unflagged (the truth scored 0.016 better than it, at both levels).
+        unflagged (the truth scored 0.016 better than it, at both levels). One that wins by
+        this or more replaces the answer as well, and since session 26 it too is confirmed:
+        the sweeps' answer was a wrong basin, so the new one must be found twice (one more
+        re-search; one more again if that one replaces it too; then flagged "found once").
+        Seed 3 case 15: the sweeps' hip 22.6 mm off, a re-search's 21.4 mm off winning by
+        0.038, unflagged; the confirming search ended 29.6 mm away, and the fine-level
+        search the question then earns found the truth (0.2 mm, flagged).
     ray_mm, ray_min_mm, ray_margin : float
         With two or more views and at least one re-search: the bone is moved along each view's
         ray (source to its centroid) up to ``ray_mm`` either way in 2 mm steps and scored at the
