@@ -50,7 +50,7 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None
     monkeypatch.setattr(rs, "_implausible",
                         lambda problem, i, y, X: np.array(joints[len(calls) - 1]))  # fmt: skip
     monkeypatch.setattr(rs, "_joint_warning", lambda problem, i, y: final)
-    monkeypatch.setattr(rs, "fine_search", fine or (lambda *args: None))
+    monkeypatch.setattr(rs, "fine_search", fine or (lambda *args, **kwargs: None))
     problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
                               settings=RegistrationSettings(), searched=[0, 1],
                               prior=None)  # fmt: skip
@@ -272,9 +272,10 @@ def test_joint_limits_are_checked():
             ResearchSettings(joint_limits=bad)
 
 
-def _fine(monkeypatch, f, population=30):
+def _fine(monkeypatch, f, population=30, check=False, d_mm=17.7):
     """:func:`research.fine_search` with its CMA-ES run returning ``f`` (x all 1) and
-    ``_compare`` 17.7 mm / 8 deg; the kept answer scores -1.0 and has a question asked."""
+    ``_compare`` ``d_mm`` / 8 deg; the kept answer scores -1.0 and has a question asked (or,
+    ``check``, none: the check of an unquestioned bone)."""
     runs = []
 
     def cmaes(objective, x0, **kwargs):
@@ -282,17 +283,19 @@ def _fine(monkeypatch, f, population=30):
         return SimpleNamespace(f=f, x=np.ones(6))
 
     monkeypatch.setattr(rs, "minimize_cmaes", cmaes)
-    monkeypatch.setattr(rs, "_compare", lambda problem, i, y, x_alt, views: (-1.0, 17.7, 8.0))
+    monkeypatch.setattr(rs, "_compare", lambda problem, i, y, x_alt, views: (-1.0, d_mm, 8.0))
     monkeypatch.setattr(rs, "_repass", lambda problem, y, r, seed, out: y)
     settings = RegistrationSettings()
-    research = replace(settings.research, fine_population=population)
+    research = replace(settings.research, fine_population=population,
+                       fine_check=(population, 40) if population else None)  # fmt: skip
     problem = SimpleNamespace(
         blocks=SimpleNamespace(bones=BONES), settings=replace(settings, research=research),
         fine=1, box=lambda i: np.full(6, 25.0),
         objective=lambda i, y, level: lambda X: np.full(len(X), -1.0),
     )  # fmt: skip
-    out = rs.ResearchOutcome(np.zeros(18), warnings=["two searches for left_hip ... do not pin"])
-    rs.fine_search(problem, 1, 2, 0, [None, None], out)
+    asked = [] if check else ["two searches for left_hip ... do not pin"]
+    out = rs.ResearchOutcome(np.zeros(18), warnings=asked)
+    rs.fine_search(problem, 1, 2, 0, [None, None], out, check=check)
     return out, runs
 
 
@@ -311,16 +314,36 @@ def test_a_fine_level_search_without_a_clear_win_changes_nothing(monkeypatch):
     assert not runs and np.all(out.y == 0.0)
 
 
-def test_only_a_bone_left_in_question_is_searched_at_the_fine_level(monkeypatch):
+def test_a_bone_in_question_gets_the_fine_search_and_one_not_in_question_the_check(monkeypatch):
     called = []
 
-    def fine(*args):
-        called.append("fine")
+    def fine(*args, check=False):
+        called.append("check" if check else "fine")
 
     _run(monkeypatch, [(-0.99, 0.5)], fine=fine)
-    assert not called  # no question: no search
+    assert called == ["check"]  # no question: the smaller check
+    called.clear()
     out, _ = _run(monkeypatch, [(-0.995, 20.0), (-0.99, 0.3)], fine=fine)
-    assert out.warnings and called == ["fine"]  # an ambiguity: one search
+    assert out.warnings and called == ["fine"]  # an ambiguity: the full search
+
+
+def test_a_far_better_check_flags_without_replacing_and_a_near_one_is_silent(monkeypatch):
+    # seed 271 case 10: a hip 7.5 mm off in depth, the fine-level search 7.9 mm away at the
+    # truth, 0.0077 better (less than confirm_margin)
+    out, runs = _fine(monkeypatch, -1.008, check=True, d_mm=7.9)
+    assert len(runs) == 1 and np.all(out.y == 0.0)
+    assert len(out.warnings) == 1 and "disagree" in out.warnings[0]
+    assert out.disagreement["left_hip"] == pytest.approx(7.9)
+    out, runs = _fine(monkeypatch, -1.001, check=True, d_mm=1.3)  # a polish of the answer
+    assert len(runs) == 1 and not out.warnings and np.all(out.y == 0.0)
+    out, runs = _fine(monkeypatch, -0.98, check=True, d_mm=10.0)  # far but worse
+    assert not out.warnings
+    out, runs = _fine(monkeypatch, -1.05, check=True)  # a clear win replaces, and flags
+    assert np.all(out.y[6:12] == 1.0) and "replaced it" in out.warnings[0]
+    out, runs = _fine(monkeypatch, -1.5, population=0, check=True)  # switched off
+    assert not runs
+    with pytest.raises(ValueError, match="fine_check"):
+        replace(RegistrationSettings().research, fine_check=(20, 0))
 
 
 def test_fine_search_settings_are_checked():
