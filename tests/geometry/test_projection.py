@@ -137,6 +137,13 @@ def test_batched_normalisation_reports_the_one_matrix_error():
         pj.normalize_projections(Ps[0])
 
 
+def test_batched_intrinsics_keep_leading_axes_and_reject_other_shapes():
+    P = pj.CArm().projection_matrix
+    assert pj.intrinsics_of(np.stack([[P, P]] * 3)).shape == (3, 2, 3, 3)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3, 4\)"):
+        pj.intrinsics_of(np.eye(4))
+
+
 @given(carms(), st.lists(st.floats(-40, 40), min_size=6, max_size=6))
 def test_projections_from_sources_equal_one_geometry_each(carm, offsets):
     g = carm.nine_dof()

@@ -143,8 +143,7 @@ def _stacked(models: tuple[PointModel, ...]) -> tuple[NDArray, NDArray, NDArray]
 
 def _normalized_intrinsics(Ps: NDArray) -> tuple[NDArray, NDArray]:
     """``(N, 3, 4)`` normalised projections and their ``(N, 4)`` ``fx, fy, cx, cy`` (pixels)."""
-    Ps = pj.normalize_projections(Ps)
-    K = pj.intrinsics_of(Ps)
+    Ps, K = pj.normalized_with_intrinsics(Ps)
     return Ps, np.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], axis=1)
 
 

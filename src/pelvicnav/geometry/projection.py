@@ -321,7 +321,7 @@ def normalize_projections(Ps: ArrayLike) -> NDArray[np.float64]:
     size = np.sqrt(np.einsum("nij,nij->n", M, M))
     clear = np.isfinite(P).all(axis=(1, 2)) & (np.abs(det) > 1e-12 * size**3)
     if not clear.all():
-        return np.stack([normalize_projection(p) for p in P]) if len(P) else P.copy()
+        return np.stack([normalize_projection(p) for p in P])
     scale = np.linalg.norm(M[:, 2], axis=1) * np.sign(det)
     return P / scale[:, None, None]
 
@@ -340,7 +340,13 @@ def intrinsics_of(Ps: ArrayLike) -> NDArray[np.float64]:
     P = np.asarray(Ps, dtype=np.float64)
     if P.shape[-2:] != (3, 4):
         raise ValueError(f"projection matrices must have shape (..., 3, 4), got {P.shape}")
-    P = normalize_projections(P.reshape(-1, 3, 4))
+    return normalized_with_intrinsics(P.reshape(-1, 3, 4))[1].reshape(*P.shape[:-2], 3, 3)
+
+
+def normalized_with_intrinsics(Ps: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`normalize_projections` of ``(N, 3, 4)`` and their :func:`intrinsics_of`
+    ``(N, 3, 3)``, normalising once."""
+    P = normalize_projections(Ps)
     m1, m2, r3 = P[:, 0, :3], P[:, 1, :3], P[:, 2, :3]  # |r3| = 1 after normalisation
     cy = np.einsum("ni,ni->n", m2, r3)
     q2 = m2 - cy[:, None] * r3
@@ -353,7 +359,7 @@ def intrinsics_of(Ps: ArrayLike) -> NDArray[np.float64]:
     K[:, 0] = np.stack([fx, skew, cx], axis=1)
     K[:, 1, 1:] = np.stack([fy, cy], axis=1)
     K[:, 2, 2] = 1.0
-    return K.reshape(*np.shape(Ps)[:-2], 3, 3)
+    return P, K
 
 
 def decompose_projection(P: ArrayLike) -> ProjectionDecomposition:

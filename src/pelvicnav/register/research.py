@@ -230,10 +230,9 @@ def research(
         r = 0
         while tally.more(r, count):
             x_alt, runs = _search_from_stage1(problem, i, out.y, r, seed)
-            if len(views) > 1:
-                tally.add(*_judge(problem, i, x_alt, runs, r, seed, views, out))
-            else:
-                _judge(problem, i, x_alt, runs, r, seed, views, out)
+            verdict = _judge(problem, i, x_alt, runs, r, seed, views, out)
+            if len(views) > 1:  # one view: judged by distance alone, in _judge
+                tally.add(*verdict)
             r += 1
         once = tally.found_once(bones[i], problem.settings.research)
         if once and tally.contested == tally.far:  # every other answer plausible

@@ -297,13 +297,7 @@ def rejoined(problem: Stage2Problem, y: NDArray) -> tuple[NDArray, CMAESResult |
     score = partial(_joint_objective, problem=problem, level=level)
     best, f_best, chosen = y, float(score(y[None])[0]), None
     for k in held:
-        centroid = problem.renderer.centroid
-        moved = [
-            i
-            for i in held
-            if i != k
-            and np.any(np.array(pose_distance(T[i], T[k], centroid(problem.blocks.bones[i]))) > lim)
-        ]
+        moved = [i for i in held if i != k and np.any(_apart(problem, i, T[i], T[k]) > lim)]
         if not moved:
             continue
         c = y.copy()
@@ -317,6 +311,11 @@ def rejoined(problem: Stage2Problem, y: NDArray) -> tuple[NDArray, CMAESResult |
         if f < f_best:
             best, f_best, chosen = c, f, res
     return best, chosen
+
+
+def _apart(problem: Stage2Problem, i: int, T_a: NDArray, T_b: NDArray) -> NDArray[np.float64]:
+    """Bone ``i`` at ``T_a`` and ``T_b``: (mm at its CT centroid, degrees) apart."""
+    return np.array(pose_distance(T_a, T_b, problem.renderer.centroid(problem.blocks.bones[i])))
 
 
 def joint(
