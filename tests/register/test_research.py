@@ -22,7 +22,8 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None
     the images alone (without the joint-aware prior; default the same), the answer's -1.0.
     ``joints``: for each search, whether (the answer, the alternative) have implausible joints
     (default neither); ``final``: the joint warning of the kept answer (default none);
-    ``fine``: called for the fine-level searches (default none: tested on their own below)."""
+    ``fine``: called with "fine" for the fine-level search of a bone in question and "check"
+    for the ray check of one not in question (default none: both tested on their own below)."""
     calls = []
     images = images or [f for f, _ in outcomes]
     joints = joints or [(False, False)] * len(outcomes)
@@ -50,7 +51,9 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None
     monkeypatch.setattr(rs, "_implausible",
                         lambda problem, i, y, X: np.array(joints[len(calls) - 1]))  # fmt: skip
     monkeypatch.setattr(rs, "_joint_warning", lambda problem, i, y: final)
-    monkeypatch.setattr(rs, "fine_search", fine or (lambda *args, **kwargs: None))
+    fine = fine or (lambda kind: None)
+    monkeypatch.setattr(rs, "fine_search", lambda *args: fine("fine"))
+    monkeypatch.setattr(rs, "fine_ray_check", lambda *args: fine("check"))
     problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
                               settings=RegistrationSettings(), searched=[0, 1],
                               prior=None)  # fmt: skip
@@ -272,22 +275,26 @@ def test_joint_limits_are_checked():
             ResearchSettings(joint_limits=bad)
 
 
-def _fine(monkeypatch, f, population=30, check=False, d_mm=17.7):
-    """:func:`research.fine_search` with its CMA-ES run returning ``f`` (x all 1) and
-    ``_compare`` ``d_mm`` / 8 deg; the kept answer scores -1.0 and has a question asked (or,
-    ``check``, none: the check of an unquestioned bone)."""
+def _fine(monkeypatch, f, population=30, check=False, d_mm=17.7, optima=1):
+    """:func:`research.fine_search` (or, ``check``, :func:`research.fine_ray_check` with
+    ``optima`` ray optima found) with each CMA-ES run returning ``f`` (a list: one per run; x
+    all 1) and ``_compare`` ``d_mm`` / 8 deg; the kept answer scores -1.0 and has a question
+    asked (or, ``check``, none: the check of an unquestioned bone)."""
     runs = []
+    scores = list(f) if isinstance(f, list) else [f] * max(optima, 1)
 
     def cmaes(objective, x0, **kwargs):
         runs.append(kwargs["seed"])
-        return SimpleNamespace(f=f, x=np.ones(6))
+        return SimpleNamespace(f=scores[len(runs) - 1], x=np.full(6, float(len(runs))))
 
     monkeypatch.setattr(rs, "minimize_cmaes", cmaes)
     monkeypatch.setattr(rs, "_compare", lambda problem, i, y, x_alt, views: (-1.0, d_mm, 8.0))
     monkeypatch.setattr(rs, "_repass", lambda problem, y, r, seed, out: y)
+    monkeypatch.setattr(rs, "_ray_optima", lambda problem, i, y, views, level, reach, margin:
+                        [np.full(6, 0.5)] * optima)  # fmt: skip
     settings = RegistrationSettings()
     research = replace(settings.research, fine_population=population,
-                       fine_check=(population, 40) if population else None)  # fmt: skip
+                       fine_ray_mm=20.0 if population else 0.0)  # fmt: skip
     problem = SimpleNamespace(
         blocks=SimpleNamespace(bones=BONES), settings=replace(settings, research=research),
         fine=1, box=lambda i: np.full(6, 25.0),
@@ -295,7 +302,7 @@ def _fine(monkeypatch, f, population=30, check=False, d_mm=17.7):
     )  # fmt: skip
     asked = [] if check else ["two searches for left_hip ... do not pin"]
     out = rs.ResearchOutcome(np.zeros(18), warnings=asked)
-    rs.fine_search(problem, 1, 2, 0, [None, None], out, check=check)
+    (rs.fine_ray_check if check else rs.fine_search)(problem, 1, 2, 0, [None, None], out)
     return out, runs
 
 
@@ -316,24 +323,20 @@ def test_a_fine_level_search_without_a_clear_win_changes_nothing(monkeypatch):
 
 def test_a_bone_in_question_gets_the_fine_search_and_one_not_in_question_the_check(monkeypatch):
     called = []
-
-    def fine(*args, check=False):
-        called.append("check" if check else "fine")
-
-    _run(monkeypatch, [(-0.99, 0.5)], fine=fine)
-    assert called == ["check"]  # no question: the smaller check
+    _run(monkeypatch, [(-0.99, 0.5)], fine=called.append)
+    assert called == ["check"]  # no question: the ray check
     called.clear()
-    out, _ = _run(monkeypatch, [(-0.995, 20.0), (-0.99, 0.3)], fine=fine)
+    out, _ = _run(monkeypatch, [(-0.995, 20.0), (-0.99, 0.3)], fine=called.append)
     assert out.warnings and called == ["fine"]  # an ambiguity: the full search
 
 
 def test_a_far_better_check_flags_without_replacing_and_a_near_one_is_silent(monkeypatch):
-    # seed 271 case 10: a hip 7.5 mm off in depth, the fine-level search 7.9 mm away at the
-    # truth, 0.0077 better (less than confirm_margin)
-    out, runs = _fine(monkeypatch, -1.008, check=True, d_mm=7.9)
+    # seed 271 case 10: a hip 7.5 mm off in depth; the search from the fine-level optimum on
+    # the AP view's ray ended at the truth, 7.7 mm away, 0.006 better (less than confirm_margin)
+    out, runs = _fine(monkeypatch, -1.006, check=True, d_mm=7.7)
     assert len(runs) == 1 and np.all(out.y == 0.0)
     assert len(out.warnings) == 1 and "disagree" in out.warnings[0]
-    assert out.disagreement["left_hip"] == pytest.approx(7.9)
+    assert out.disagreement["left_hip"] == pytest.approx(7.7)
     out, runs = _fine(monkeypatch, -1.001, check=True, d_mm=1.3)  # a polish of the answer
     assert len(runs) == 1 and not out.warnings and np.all(out.y == 0.0)
     out, runs = _fine(monkeypatch, -0.98, check=True, d_mm=10.0)  # far but worse
@@ -342,13 +345,56 @@ def test_a_far_better_check_flags_without_replacing_and_a_near_one_is_silent(mon
     assert np.all(out.y[6:12] == 1.0) and "replaced it" in out.warnings[0]
     out, runs = _fine(monkeypatch, -1.5, population=0, check=True)  # switched off
     assert not runs
-    with pytest.raises(ValueError, match="fine_check"):
-        replace(RegistrationSettings().research, fine_check=(20, 0))
+
+
+def test_the_check_searches_from_each_ray_optimum_and_judges_the_best(monkeypatch):
+    out, runs = _fine(monkeypatch, -1.5, check=True, optima=0)  # no optimum on any ray
+    assert not runs and not out.warnings and np.all(out.y == 0.0)
+    out, runs = _fine(monkeypatch, [-0.99, -1.05], check=True, optima=2)  # one per view
+    assert len(runs) == 2 and len(set(runs)) == 2  # independent seeds
+    assert np.all(out.y[6:12] == 2.0) and "replaced it" in out.warnings[0]  # the second won
+
+
+def test_the_check_finds_the_fine_levels_optimum_on_a_views_ray():
+    """The fine level prefers a place 7 mm along the AP view's ray (seed 271 case 10); the
+    check's probe finds it within its margin, and not one 2 mm away or one too much worse."""
+    from pelvicnav.geometry import projection as pj
+
+    views = [pj.CArm(orbit_deg=o).projection_matrix for o in (0.0, 30.0)]
+    centre = np.array([40.0, 10.0, -5.0])
+    d = centre - pj.decompose_projection(views[0]).source
+    d /= np.linalg.norm(d)
+
+    def wells(*places):
+        def objective(X):
+            return -sum(depth * np.exp(-np.sum((X[:, :3] - c) ** 2, axis=1) / 2.0)
+                        for c, depth in places)  # fmt: skip
+
+        return objective
+
+    rs_ = RegistrationSettings().research
+    reach = (rs_.fine_ray_mm, rs_.fine_ray_step_mm, rs_.fine_ray_min_mm)
+    problem = SimpleNamespace(
+        blocks=SimpleNamespace(centres=np.array([[0.0] * 3, centre, [0.0] * 3])),
+        box=lambda i: np.array([25.0] * 3 + [12.0] * 3),
+    )  # fmt: skip
+    y, seen = np.zeros(18), SimpleNamespace(projections=views)
+    problem.objective = lambda i, y, lv: wells((0.0, 1.0), (-7.0 * d, 1.0))
+    starts = rs._ray_optima(problem, 1, y, seen, 1, reach, rs_.fine_ray_margin)
+    assert len(starts) >= 1
+    np.testing.assert_allclose(starts[0][:3], -7.0 * d, atol=1e-9)
+    problem.objective = lambda i, y, lv: wells((0.0, 1.0), (-7.0 * d, 0.95))  # 0.05 worse
+    assert rs._ray_optima(problem, 1, y, seen, 1, reach, rs_.fine_ray_margin) == []
+    problem.objective = lambda i, y, lv: wells((0.0, 1.0), (-2.0 * d, 1.0))  # too near
+    assert all(np.linalg.norm(x[:3]) >= 3.0 for x in
+               rs._ray_optima(problem, 1, y, seen, 1, reach, rs_.fine_ray_margin))  # fmt: skip
 
 
 def test_fine_search_settings_are_checked():
     from pelvicnav.register.settings import ResearchSettings
 
-    for bad in ({"fine_population": -1}, {"fine_generations": 0}, {"fine_sigma": 0.0}):
+    for bad in ({"fine_population": -1}, {"fine_generations": 0}, {"fine_sigma": 0.0},
+                {"fine_ray_mm": -1.0}, {"fine_ray_step_mm": 0.0}, {"fine_ray_margin": -0.1},
+                {"fine_ray_search": (1, 25, 2.0)}, {"fine_ray_search": (10, 25, 0.0)}):  # fmt: skip
         with pytest.raises(ValueError, match="fine_"):
             ResearchSettings(**bad)

@@ -454,17 +454,22 @@ class ResearchSettings:
         4.5 s each on 2 cores); on seed 239 case 33 they found a hip 7.2 mm off, better than the
         kept one (32 mm off) but not the truth, so the flag is not lifted.
         ``fine_population = 0`` switches it off.
-    fine_check : (int, int) or None
-        Population and generation limit of the same fine-level search for a dislocated bone
-        the re-searches did not question (two or more views; step ``fine_sigma``): its answer
-        replaces the kept one if better by ``confirm_margin``, and one that ends more than
-        ``retry_mm`` away and scores better by less flags the registration (session 26). Seed
-        271 case 10: a hip 7.5 mm off in depth, unflagged, its sweeps and re-search agreeing;
-        the truth 0.007 better at the finest level only. A 30 x 60 search after every
-        registration of that seed's cases 0-19 ended 0.0-1.3 mm from the 19 good answers
-        (0.0003-0.0011 better) and 7.9 mm from 271/10's, at the truth; 20 x 40 found it as
-        well and ended 1.4 mm from a good answer (271/8), 15 x 30 did not. About 1.5 s per
-        registration on 2 cores. None switches it off.
+    fine_ray_mm, fine_ray_step_mm, fine_ray_min_mm, fine_ray_margin : float
+        With two or more views, a dislocated bone the re-searches did not question is probed
+        along each view's ray at the finest level: scanned up to ``fine_ray_mm`` either way in
+        ``fine_ray_step_mm`` steps, the best local optimum at least ``fine_ray_min_mm`` away
+        that scores within ``fine_ray_margin`` of the answer (at most one per view) starts a
+        short fine-level search (``fine_ray_search``: population, generation limit, step mm and
+        degrees). Its answer replaces the kept one if better by ``confirm_margin``; one that
+        ends more than ``retry_mm`` away and scores better by less flags the registration
+        (:func:`~pelvicnav.register.research.fine_ray_check`). Seed 271 case 10: a hip 7.5 mm
+        off in depth, unflagged, its sweeps and re-search agreeing; the truth 0.007 better at
+        the finest level only. The probe's optimum 7 mm along the AP view's ray lay 0.8 mm from
+        the truth and its search ended at the truth, 0.006 better: flagged. On 39 good
+        registrations (seeds 271 and 277, cases 0-19) the optima scored 0.014-0.08 worse but
+        one (0.008; its search ended 1.0 mm away and worse): no false alarm. About 0.2 s per
+        registration, 0.8 s with a search (session 26's 20 x 40 search from the stage-1 pose
+        found the same case for 2.7 s). ``fine_ray_mm`` 0 switches it off.
     """
 
     restarts: int | None = None
@@ -484,14 +489,28 @@ class ResearchSettings:
     fine_population: int = 30
     fine_generations: int = 60
     fine_sigma: float = 6.0
-    fine_check: tuple[int, int] | None = (20, 40)
+    fine_ray_mm: float = 20.0
+    fine_ray_step_mm: float = 1.0
+    fine_ray_min_mm: float = 3.0
+    fine_ray_margin: float = 0.01
+    fine_ray_search: tuple[int, int, float] = (10, 25, 2.0)
 
     def __post_init__(self) -> None:
-        if self.fine_check is not None and (
-            len(self.fine_check) != 2 or self.fine_check[0] < 0 or self.fine_check[1] < 1
+        if not (
+            self.fine_ray_mm >= 0
+            and self.fine_ray_step_mm > 0
+            and self.fine_ray_min_mm >= 0
+            and self.fine_ray_margin >= 0
         ):
-            raise ValueError(f"fine_check must be (population >= 0, generations >= 1) or None, "
-                             f"got {self.fine_check}")  # fmt: skip
+            raise ValueError("fine_ray_mm, fine_ray_min_mm and fine_ray_margin must be >= 0 and "
+                             f"fine_ray_step_mm > 0, got fine_ray_mm={self.fine_ray_mm}, "
+                             f"fine_ray_step_mm={self.fine_ray_step_mm}, "
+                             f"fine_ray_min_mm={self.fine_ray_min_mm}, "
+                             f"fine_ray_margin={self.fine_ray_margin}")  # fmt: skip
+        population, generations, sigma = self.fine_ray_search
+        if population < 2 or generations < 1 or not sigma > 0:
+            raise ValueError("fine_ray_search must be (population >= 2, generations >= 1, "
+                             f"sigma > 0), got {self.fine_ray_search}")  # fmt: skip
         if not (self.fine_population >= 0 and self.fine_generations >= 1 and self.fine_sigma > 0):
             raise ValueError("fine_population must be >= 0, fine_generations >= 1 and fine_sigma "
                              f"> 0, got {self.fine_population}, {self.fine_generations}, "
