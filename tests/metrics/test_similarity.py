@@ -99,6 +99,23 @@ def test_fast_go_equals_equation_10():
         go(np.full((40, 50), np.nan))
 
 
+def test_fast_go_reads_one_view_of_a_drr_stack_in_place_and_refuses_any_nan_or_inf():
+    from pelvicnav.metrics.similarity import GradientOrientation
+
+    rng = np.random.default_rng(5)
+    fixed = rng.random((40, 50))
+    stack = rng.random((4, 2, 40, 50)).astype(np.float32)  # (B, K, H, W): view 1 is strided
+    go = GradientOrientation(fixed)
+    np.testing.assert_array_equal(go(stack[:, 1]), go(np.ascontiguousarray(stack[:, 1])))
+    np.testing.assert_allclose(go(stack[:, 1]), gradient_orientation(fixed, stack[:, 1]), rtol=1e-4)
+    for bad in (np.nan, np.inf, -np.inf):
+        for pixel in ((0, 0), (39, 49), (0, 49), (17, 23)):  # corners and the inside
+            images = stack.copy()
+            images[2, 1][pixel] = bad
+            with pytest.raises(ValueError, match="NaN or infinity"):
+                go(images[:, 1])
+
+
 def test_gradient_ncc_class_equals_function():
     from pelvicnav.metrics.similarity import GradientNCC
 
