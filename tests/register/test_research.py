@@ -290,7 +290,7 @@ def _fine(monkeypatch, f, population=30, check=False, d_mm=17.7, optima=1):
     monkeypatch.setattr(rs, "minimize_cmaes", cmaes)
     monkeypatch.setattr(rs, "_compare", lambda problem, i, y, x_alt, views: (-1.0, d_mm, 8.0))
     monkeypatch.setattr(rs, "_repass", lambda problem, y, r, seed, out: y)
-    monkeypatch.setattr(rs, "_ray_optima", lambda problem, i, y, views, level, reach, margin:
+    monkeypatch.setattr(rs, "_ray_optima", lambda problem, i, y, views, objective, reach, margin:
                         [np.full(6, 0.5)] * optima)  # fmt: skip
     settings = RegistrationSettings()
     research = replace(settings.research, fine_population=population,
@@ -379,15 +379,19 @@ def test_the_check_finds_the_fine_levels_optimum_on_a_views_ray():
         box=lambda i: np.array([25.0] * 3 + [12.0] * 3),
     )  # fmt: skip
     y, seen = np.zeros(18), SimpleNamespace(projections=views)
+
+    def optima():
+        objective = problem.objective(1, y, 1)  # the fine level's
+        return rs._ray_optima(problem, 1, y, seen, objective, reach, rs_.fine_ray_margin)
+
     problem.objective = lambda i, y, lv: wells((0.0, 1.0), (-7.0 * d, 1.0))
-    starts = rs._ray_optima(problem, 1, y, seen, 1, reach, rs_.fine_ray_margin)
+    starts = optima()
     assert len(starts) >= 1
     np.testing.assert_allclose(starts[0][:3], -7.0 * d, atol=1e-9)
     problem.objective = lambda i, y, lv: wells((0.0, 1.0), (-7.0 * d, 0.95))  # 0.05 worse
-    assert rs._ray_optima(problem, 1, y, seen, 1, reach, rs_.fine_ray_margin) == []
+    assert optima() == []
     problem.objective = lambda i, y, lv: wells((0.0, 1.0), (-2.0 * d, 1.0))  # too near
-    assert all(np.linalg.norm(x[:3]) >= 3.0 for x in
-               rs._ray_optima(problem, 1, y, seen, 1, reach, rs_.fine_ray_margin))  # fmt: skip
+    assert all(np.linalg.norm(x[:3]) >= 3.0 for x in optima())
 
 
 def test_fine_search_settings_are_checked():

@@ -88,20 +88,19 @@ def _ray_starts(problem: Stage2Problem, i: int, y: NDArray, views: ViewSet) -> l
     optimum of the coarsest level's objective at least ``ray_min_mm`` away that scores within
     ``ray_margin`` of where the bone is (at most one per view), inside the bone's search box."""
     rs = problem.settings.research
-    return _ray_optima(problem, i, y, views, problem.searched[0],
+    return _ray_optima(problem, i, y, views, problem.objective(i, y, problem.searched[0]),
                        (rs.ray_mm, RAY_STEP_MM, rs.ray_min_mm), rs.ray_margin)  # fmt: skip
 
 
-def _ray_optima(problem: Stage2Problem, i: int, y: NDArray, views: ViewSet, level: int,
+def _ray_optima(problem: Stage2Problem, i: int, y: NDArray, views: ViewSet, objective,
                 reach: tuple[float, float, float], margin: float) -> list[NDArray]:  # fmt: skip
     """Bone ``i``'s parameters moved along each view's ray (source to its centroid) to the best
-    local optimum of ``level``'s objective, scanned up to ``reach[0]`` mm either way in steps of
-    ``reach[1]`` mm, at least ``reach[2]`` mm away and within ``margin`` of where the bone is
-    (at most one per view), inside the bone's search box."""
+    local optimum of ``objective`` (bone ``i``'s at one level, the others at ``y``), scanned up
+    to ``reach[0]`` mm either way in steps of ``reach[1]`` mm, at least ``reach[2]`` mm away and
+    within ``margin`` of where the bone is (at most one per view), inside its search box."""
     x = y[6 * i : 6 * i + 6]
     centre = problem.blocks.centres[i] + x[:3]  # the bone's centroid at x (world mm)
     steps = np.arange(-reach[0], reach[0] + 1e-9, reach[1])
-    objective = problem.objective(i, y, level)
     f0 = float(objective(x[None])[0])
     box = problem.box(i)
     starts = []
@@ -353,10 +352,11 @@ def fine_ray_check(problem: Stage2Problem, i: int, r: int, seed: int, views: Vie
     if rs.fine_ray_mm <= 0:
         return
     reach = (rs.fine_ray_mm, rs.fine_ray_step_mm, rs.fine_ray_min_mm)
-    starts = _ray_optima(problem, i, out.y, views, problem.fine, reach, rs.fine_ray_margin)
+    objective = problem.objective(i, out.y, problem.fine)  # the others' DRR rendered once
+    starts = _ray_optima(problem, i, out.y, views, objective, reach, rs.fine_ray_margin)
     if not starts:
         return
-    box, objective = problem.box(i), problem.objective(i, out.y, problem.fine)
+    box = problem.box(i)
     f_now = float(objective(out.y[None, 6 * i : 6 * i + 6])[0])
     population, generations, sigma = rs.fine_ray_search
     runs = [minimize_cmaes(objective, x0, sigma=sigma, population=population,
