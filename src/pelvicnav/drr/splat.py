@@ -142,9 +142,23 @@ def _stacked(models: tuple[PointModel, ...]) -> tuple[NDArray, NDArray, NDArray]
 
 
 def _normalized_intrinsics(Ps: NDArray) -> tuple[NDArray, NDArray]:
-    """``(N, 3, 4)`` normalised projections and their ``(N, 4)`` ``fx, fy, cx, cy`` (pixels)."""
-    Ps, K = pj.normalized_with_intrinsics(Ps)
-    return Ps, np.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], axis=1)
+    """``(N, 3, 4)`` normalised projections and their ``(N, 4)`` ``fx, fy, cx, cy`` (pixels);
+    the few geometries of a registration are normalised once (:func:`_normalized`). Writable
+    copies: the kernels are compiled for writable arrays."""
+    P = np.ascontiguousarray(Ps, dtype=np.float64)
+    Pn, intr = _normalized(P.tobytes(), len(P))
+    return Pn.copy(), intr.copy()
+
+
+@functools.lru_cache(maxsize=32)  # a registration renders through a few geometries many times
+def _normalized(key: bytes, n: int) -> tuple[NDArray, NDArray]:
+    """:func:`_normalized_intrinsics` of the ``n`` matrices stored in ``key`` (float64 bytes).
+    Saves a tenth of a tracked frame's time (0.3 ms a call, 80 calls)."""
+    Ps, K = pj.normalized_with_intrinsics(np.frombuffer(key, dtype=np.float64).reshape(n, 3, 4))
+    intr = np.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], axis=1)
+    for a in (Ps, intr):
+        a.flags.writeable = False
+    return Ps, intr
 
 
 def splat(
@@ -272,20 +286,31 @@ def splat_pullback(
     M = np.einsum("kij,ljm->klim", Ps, T)[None]
     radius, pad = _blur_radius(models[0], M, intr)
     pts, mass, _ = _stacked(tuple(models))
-    sizes = [len(m.points) for m in models]
-    # chunks of samples that never straddle two bones, spread over the threads
-    starts = np.concatenate([np.arange(o, o + n, _CHUNK) for o, n in
-                             zip(np.cumsum([0, *sizes[:-1]]), sizes, strict=True)])  # fmt: skip
-    owner = np.repeat(np.arange(L), [int(np.ceil(n / _CHUNK)) for n in sizes])
-    ends = np.minimum(starts + _CHUNK, np.repeat(np.cumsum(sizes), np.bincount(owner, minlength=L)))
+    starts, ends, owner = _chunks(tuple(len(m.points) for m in models))
     rows, cols = G.shape[1:]
     H = np.zeros((len(Ps), rows + 2 * pad, cols + 2 * pad), dtype=np.float32)  # cache-friendly
     _compile_adjoint_blur()(np.ascontiguousarray(G), np.ascontiguousarray(radius[0]), pad, H)
     partial = np.zeros((len(starts), 6))
-    _compile_pullback()(Ps, T, pts, mass, starts.astype(np.int64),
-                        ends.astype(np.int64), owner.astype(np.int64), intr[0], pad, H,
-                        partial)  # fmt: skip
-    return np.stack([partial[owner == l].sum(axis=0) for l in range(L)])
+    _compile_pullback()(Ps, T, pts, mass, starts.copy(), ends.copy(), owner.copy(), intr[0], pad,
+                        H, partial)  # fmt: skip
+    out = np.zeros((L, 6))
+    np.add.at(out, owner, partial)
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _chunks(sizes: tuple[int, ...]) -> tuple[NDArray, NDArray, NDArray]:
+    """``(starts, ends, owner)`` (int64, read-only) of the adjoint's chunks of samples: at most
+    ``_CHUNK`` each, never straddling two bones (``sizes`` samples each, end to end), spread
+    over the threads."""
+    offsets = np.cumsum([0, *sizes])
+    starts = np.concatenate([np.arange(o, o + n, _CHUNK) for o, n in
+                             zip(offsets[:-1], sizes, strict=True)]).astype(np.int64)  # fmt: skip
+    owner = np.repeat(np.arange(len(sizes)), [-(-n // _CHUNK) for n in sizes]).astype(np.int64)
+    ends = np.minimum(starts + _CHUNK, offsets[1:][owner]).astype(np.int64)
+    for a in (starts, ends, owner):
+        a.flags.writeable = False
+    return starts, ends, owner
 
 
 @functools.cache  # compile once per process, on first use
@@ -499,7 +524,11 @@ def _compile_adjoint_blur():  # pragma: no cover - compiled code
 def _compile_pullback():  # pragma: no cover - compiled code
     import numba as nb
 
-    @nb.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
+    # No fastmath: with it, the kernel compiled in a process and the same kernel loaded from
+    # numba's cache gave gradients differing in the last bits, enough to send L-BFGS-B along
+    # another path (tracked frames 0.257 / 0.264 mm median, 20 / 23 fine-level evaluations,
+    # depending on whether the cache was warm); without it, bitwise the same and as fast.
+    @nb.njit(parallel=True, cache=True, error_model="numpy")
     def kernel(P, T, pts, mass, starts, ends, owner, intr, pad, H, out):
         """Per chunk c of bone owner[c]: out[c] = sum over its samples and the views of the
         world force q and X x q."""
