@@ -105,3 +105,38 @@ def test_per_candidate_projections_match_shared_ones():
     np.testing.assert_allclose(per, shared, rtol=1e-6, atol=1e-7)
     swapped = splat([model], poses, np.stack([[P1, P2], [P2, P1]]), (32, 32))
     np.testing.assert_allclose(swapped[1, 0], shared[1, 1], rtol=1e-6, atol=1e-7)
+
+
+_KERNELS_SCRIPT = """
+import hashlib, sys
+import numpy as np
+from pelvicnav.drr.splat import PointModel, splat_pullback
+rng = np.random.default_rng(0)
+models = [PointModel(rng.normal(0, 40, (5000, 3)), rng.uniform(0.1, 1, 5000), 1.5)
+          for _ in range(2)]
+T = np.stack([np.eye(4)] * 2)
+P = np.array([[900.0, 0, 64, 900 * 64], [0, 900, 64, 900 * 64], [0, 0, 1, 900]])
+Q = P.copy()
+Q[0, 3] += 200
+Ps = np.stack([P, Q])
+G = rng.normal(size=(2, 128, 128))
+sys.stdout.write(hashlib.md5(splat_pullback(models, T, Ps, G).tobytes()).hexdigest())
+"""
+
+
+@pytest.mark.slow
+def test_the_adjoint_compiled_here_and_loaded_from_the_cache_agree_bitwise(tmp_path):
+    """The adjoint splat compiled with fastmath gave other last bits when numba loaded it from
+    its cache than when it had just compiled it, and a tracked frame took another path (see
+    ``_compile_pullback``): the first process here compiles into an empty cache, the second
+    loads from it."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    run = [sys.executable, "-c", _KERNELS_SCRIPT]
+    fresh = subprocess.run(run, env=env, capture_output=True, text=True, check=True).stdout
+    assert any(tmp_path.rglob("*.nbi")), "nothing was cached"
+    cached = subprocess.run(run, env=env, capture_output=True, text=True, check=True).stdout
+    assert fresh == cached
