@@ -16,9 +16,9 @@ def test_low_dose_case_is_registered_and_its_tre_read_at_the_beads(tmp_path):
     assert [s["dose_ugy"] for s in summary] == [2.0]
     assert summary[0]["n"] == 1
     # Shipped defaults at 2 uGy/frame: the case is a success (every bead under the study's
-    # 4 mm), its median TRE well under. Its worst bead is 1.41 mm alone and was 2.16 mm once
-    # in the full suite (same seeds: a low-dose optimum that moves with the process's state,
-    # see docs/registration.md), so the test holds the study's criterion, not 2 mm.
+    # 4 mm), its median TRE well under. Its worst bead is 1.61 mm (session 28; it moved between
+    # 1.4 and 2.2 mm with whether numba had just compiled the adjoint splat or loaded it from its
+    # cache, fixed then), so the test holds the study's criterion, not 2 mm.
     assert summary[0]["tre_worst_mm"] < settings.success_mm, summary
     assert summary[0]["tre_median_mm"] < 1.0, summary
     assert lowest_good_dose(summary, settings) == 2.0
