@@ -1027,7 +1027,11 @@ def register(
             )  # fmt: skip
     except ValueError as err:
         raise _fail(str(err)) from None
-    status = "[green]converged[/]" if result.converged else "[red]NOT converged[/]"
+    status = {
+        "converged": "[green]converged[/]",
+        "in question": "[red]NOT converged[/]",
+        "implausible": "[red]NOT converged: its joints are implausible, likely wrong[/]",
+    }[result.verdict]
     console.print(
         f"wrote {out} ({record['mode']}): {status}, GO {result.similarity:.3f}, "
         f"{result.seconds:.1f} s " + ", ".join(f"{s.name} {s.seconds:.1f} s" for s in result.stages)

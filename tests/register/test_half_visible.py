@@ -60,3 +60,5 @@ def test_with_the_shipped_defaults_a_wrong_half_visible_hip_is_flagged_by_its_jo
     if max(errors.values()) > 4.0:
         assert not res.converged, (errors, res.warnings)
         assert any("no dislocation puts it there" in w for w in res.warnings), res.warnings
+        assert res.verdict == "implausible", res.implausible  # likely wrong, not only in question
+        assert res.to_json()["verdict"] == "implausible"

@@ -33,3 +33,5 @@ def test_with_the_shipped_defaults_a_pelvis_misplaced_by_stage_1_is_flagged():
     assert worst <= 4.0 or not res.converged
     if worst > 4.0:
         assert any("intact joints moved" in w and w.startswith("right_hip") for w in res.warnings)
+        assert res.verdict == "implausible", res.implausible  # likely wrong, not only in question
+        assert all(w in res.warnings for w in res.implausible)

@@ -194,3 +194,16 @@ def test_intact_limits_are_validated():
         RegistrationSettings(intact_limits=(0.0, 3.0))
     with pytest.raises(ValueError, match="intact_limits"):
         RegistrationSettings(intact_limits=(3.0,))
+
+
+def test_a_result_flagged_by_its_joints_is_implausible_not_only_in_question():
+    from pelvicnav.register.result import MultiBodyResult
+
+    base = {"poses": {}, "projections": (), "similarity": 1.0}
+    assert MultiBodyResult(**base, converged=True).verdict == "converged"
+    doubted = MultiBodyResult(**base, converged=False, warnings=("two answers within 0.01",))
+    assert doubted.verdict == "in question" and doubted.to_json()["implausible"] == []
+    joints = "left_hip ends with 21% of its joint samples inside another bone: no dislocation"
+    bad = MultiBodyResult(**base, converged=False, warnings=(joints,), implausible=(joints,))
+    assert bad.verdict == "implausible"
+    assert bad.to_json()["verdict"] == "implausible" and bad.to_json()["implausible"] == [joints]

@@ -264,6 +264,9 @@ def test_an_implausible_answer_is_flagged(monkeypatch):
     # seed 151 case 22: the hip 24.7 mm off with its joint gap 31.8 mm wider than the CT's
     out, _ = _run(monkeypatch, [(-0.99, 0.5)], final="left_hip ends with ...: no dislocation")
     assert out.warnings == ["left_hip ends with ...: no dislocation"]
+    assert out.implausible == out.warnings  # the result will say "likely wrong"
+    plausible, _ = _run(monkeypatch, [(-0.99, 0.5)])
+    assert plausible.implausible == []
 
 
 def test_joint_limits_are_checked():

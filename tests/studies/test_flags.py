@@ -24,3 +24,20 @@ def test_flag_counts_per_registration():
     two = [{"case_id": "x", "l": 1.0, "r": 4.5, "converged": True}]
     assert flag_counts(two, ["l", "r"])["gross"] == 1
     assert flag_counts(two, ["l", "r"], limit_mm=5.0)["gross"] == 0
+
+
+def test_implausible_flags_are_counted_where_the_rows_carry_them():
+    rows = [
+        {"case_id": 0, "error_mm": 20.0, "converged": "False", "implausible": "True"},
+        {"case_id": 1, "error_mm": 0.3, "converged": "False", "implausible": "False"},
+        {"case_id": 2, "error_mm": 0.2, "converged": "False", "implausible": "True"},
+        {"case_id": 3, "error_mm": 9.0, "converged": "False", "implausible": "False"},
+        {"case_id": 4, "error_mm": 0.1, "converged": "True", "implausible": "False"},
+    ]
+    c = flag_counts(rows, "error_mm")
+    assert (c["flagged"], c["implausible"], c["implausible_gross"]) == (4, 2, 1)
+    assert "2 flagged as implausible" in flag_line(c) and "1 of them with an error" in flag_line(c)
+    # rows without the column (older stores, other studies): nothing said of it
+    plain = [{k: v for k, v in r.items() if k != "implausible"} for r in rows]
+    assert "implausible" not in flag_counts(plain, "error_mm")
+    assert "implausible" not in flag_line(flag_counts(plain, "error_mm"))

@@ -180,6 +180,7 @@ class _Attempt:
     disagreement: dict[str, float]
     body: str
     doubts: list[str] = field(default_factory=list)  # ambiguities with an implausible other answer
+    implausible: list[str] = field(default_factory=list)  # warnings: joints no answer can have
 
 
 def _attempt(run: _Run, init: dict, s1) -> _Attempt:
@@ -189,15 +190,16 @@ def _attempt(run: _Run, init: dict, s1) -> _Attempt:
         views = views.with_projections(s1.projections)
         levels = [lv.with_geometry(views.projections) for lv in levels]
     poses = {b: s1.delta @ init[b] for b in run.renderer.bones}  # they share the set-up error
-    stages, warnings, disagreement, doubts = [s1.result], [], {}, []
+    stages, warnings, disagreement, doubts, implausible = [s1.result], [], {}, [], []
     if cfg.stage2.enabled:
         s2 = _stage2(views, levels, run.renderer, poses, cfg, run.seed, run.progress,
                      run.dislocated)  # fmt: skip
         poses, disagreement, warnings, doubts = s2.poses, s2.disagreement, s2.warnings, s2.doubts
         stages.append(s2.result)
-        warnings = [*warnings, *_intact_warnings(run, poses, views, levels[-1])]
+        intact = _intact_warnings(run, poses, views, levels[-1])
+        warnings, implausible = [*warnings, *intact], [*s2.implausible, *intact]
     return _Attempt(views, levels[-1], poses, stages, warnings, disagreement, run.body(init).name,
-                    doubts)  # fmt: skip
+                    doubts, implausible)  # fmt: skip
 
 
 def _intact_warnings(run: _Run, poses: dict, views: ViewSet, fine: Level) -> list[str]:
@@ -220,9 +222,11 @@ def _intact_warnings(run: _Run, poses: dict, views: ViewSet, fine: Level) -> lis
 
 
 def _judged(run: _Run, a: _Attempt, settled: bool) -> MultiBodyResult:
-    """The attempt judged (``settled``: see :func:`_settled`); its doubts flag it too."""
-    return _judge(a.views, a.fine, run.renderer, a.poses, a.stages, [*a.warnings, *a.doubts],
-                  a.disagreement, run.cfg, run.t_start, a.body, settled)  # fmt: skip
+    """The attempt judged (``settled``: see :func:`_settled`); its doubts flag it too, and its
+    joints that no dislocation gives mark it ``implausible``."""
+    result = _judge(a.views, a.fine, run.renderer, a.poses, a.stages, [*a.warnings, *a.doubts],
+                    a.disagreement, run.cfg, run.t_start, a.body, settled)  # fmt: skip
+    return replace(result, implausible=tuple(a.implausible))
 
 
 def _f(s1) -> float:
@@ -558,6 +562,7 @@ class _Stage2Outcome:
     warnings: list[str]
     result: StageResult
     doubts: list[str]
+    implausible: list[str]  # of the warnings: the dislocated bone's joints no dislocation gives
 
 
 def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> _Stage2Outcome:
@@ -583,7 +588,7 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
     again = research(problem, y, views, seed, count if problem.searched else 0)
     result = StageResult("stage 2", runs, time.perf_counter() - t0, problem.final_runs, again.runs)
     return _Stage2Outcome(problem.blocks.as_dict(again.y), again.disagreement, again.warnings,
-                          result, again.doubts)  # fmt: skip
+                          result, again.doubts, again.implausible)  # fmt: skip
 
 
 def _attainable(metric: str, drrs: NDArray, n_views: int) -> float:

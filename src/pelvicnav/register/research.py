@@ -56,6 +56,7 @@ class ResearchOutcome:
     disagreement: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     doubts: list[str] = field(default_factory=list)  # ambiguities whose other answer is implausible
+    implausible: list[str] = field(default_factory=list)  # the kept answer's joints: no dislocation
 
 
 def _search_from_stage1(
@@ -258,6 +259,7 @@ def research(
         joints = _joint_warning(problem, i, out.y)
         if joints:
             out.warnings.append(joints)
+            out.implausible.append(joints)
     return out
 
 

@@ -8,7 +8,11 @@ registration (``case_id``):
 * ``gross``: registrations with an error over the limit (4 mm: the paper's success criterion),
   and ``gross_flagged``, those of them that were flagged;
 * ``flagged``: flagged registrations, and ``flagged_fine``, those of them with every error within
-  the limit (false alarms).
+  the limit (false alarms);
+* where the rows say which results' joints no dislocation gives (``implausible``, see
+  :class:`~pelvicnav.register.result.MultiBodyResult`): ``implausible``, such registrations, and
+  ``implausible_gross``, those of them with an error over the limit. Such a flag says "likely
+  wrong"; the others, "in question".
 
 Issue 13's goals: every gross error flagged, at most 10 % of flagged registrations fine.
 """
@@ -39,23 +43,33 @@ def flag_counts(
     cases: dict[str, list[dict]] = {}
     for r in rows:
         cases.setdefault(str(r[case_key]), []).append(r)
-    gross, flagged = set(), set()
+    gross, flagged, implausible = set(), set(), set()
     for cid, sel in cases.items():
         errors = np.array([float(r[k]) for r in sel for k in keys], dtype=float)
         if np.any(~np.isfinite(errors)) or np.any(errors > limit_mm):
             gross.add(cid)
         if not all(_true(r["converged"]) for r in sel):
             flagged.add(cid)
-    return {"registrations": len(cases), "gross": len(gross), "gross_flagged": len(gross & flagged),
-            "flagged": len(flagged), "flagged_fine": len(flagged - gross)}  # fmt: skip
+        if any(_true(r.get("implausible", False)) for r in sel):
+            implausible.add(cid)
+    out = {"registrations": len(cases), "gross": len(gross), "gross_flagged": len(gross & flagged),
+           "flagged": len(flagged), "flagged_fine": len(flagged - gross)}  # fmt: skip
+    if any("implausible" in r for r in rows):
+        out |= {"implausible": len(implausible), "implausible_gross": len(implausible & gross)}
+    return out
 
 
 def flag_line(counts: dict[str, int], limit_mm: float = LIMIT_MM) -> str:
     """One sentence for a summary."""
     c = counts
-    return (f"Flag: {c['gross']} of {c['registrations']} registrations had an error over "
+    line = (f"Flag: {c['gross']} of {c['registrations']} registrations had an error over "
             f"{limit_mm:g} mm, {c['gross_flagged']} of them flagged as not converged; "
             f"{c['flagged']} flagged, {c['flagged_fine']} of them in fact fine.")  # fmt: skip
+    if "implausible" in c:
+        line += (f" {c['implausible']} flagged as implausible (joints no dislocation gives: "
+                 f"likely wrong), {c['implausible_gross']} of them with an error over "
+                 f"{limit_mm:g} mm.")  # fmt: skip
+    return line
 
 
 def _true(value) -> bool:
