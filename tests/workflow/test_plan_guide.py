@@ -182,3 +182,23 @@ def test_plan_bad_input_writes_nothing(tmp_path):
         assert not out.exists()
     res = runner.invoke(app, ["report", str(tmp_path / "nothing")])
     assert res.exit_code == 2 and "not a folder" in res.output
+
+
+def test_an_unreliable_frame_whose_joints_are_implausible_reads_likely_wrong(tmp_path):
+    import json
+
+    from pelvicnav.guide.report import _frame_section
+
+    record = {
+        "frame": 3,
+        "mode": "first",
+        "time": "t",
+        "reliable": False,
+        "residual": {},
+        "warnings": ["left_hip ends with 21% of its joint samples inside another bone"],
+    }
+    (tmp_path / "result.json").write_text(json.dumps({**record, "verdict": "in question"}))
+    assert "Likely wrong" not in _frame_section(tmp_path)
+    (tmp_path / "result.json").write_text(json.dumps({**record, "verdict": "implausible"}))
+    text = _frame_section(tmp_path)
+    assert "UNRELIABLE REGISTRATION" in text and "Likely wrong" in text

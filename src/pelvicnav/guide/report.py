@@ -90,7 +90,9 @@ def _frame_section(folder: Path) -> str:
         )
     else:
         warnings = "; ".join(r.get("warnings", [])) or "the registration did not converge"
-        flag = (f"<div class='bad'>UNRELIABLE REGISTRATION: not guidance. "
+        likely = " Likely wrong: its joints are ones no dislocation gives." if r.get(
+            "verdict") == "implausible" else ""  # fmt: skip
+        flag = (f"<div class='bad'>UNRELIABLE REGISTRATION: not guidance.{likely} "
                 f"{html.escape(warnings)}</div>")  # fmt: skip
         guidance = ""
     rows = [[b, _fmt(x["distance_mm"]), _fmt(x["angle_deg"]),
