@@ -829,7 +829,10 @@ def guide_command(
     except ValueError as err:
         raise _fail(str(err)) from None
     if not frame.converged:
-        console.print(f"[bold red]frame {frame.index}: UNRELIABLE registration: not guidance[/]")
+        likely = (", likely wrong (its joints are implausible)"
+                  if frame.record.get("verdict") == "implausible" else "")  # fmt: skip
+        console.print(f"[bold red]frame {frame.index}: UNRELIABLE registration{likely}: "
+                      "not guidance[/]")  # fmt: skip
     else:
         for bone, r in frame.residual.items():
             console.print(f"frame {frame.index} ({frame.mode}): {bone}: {r['description']}")
