@@ -145,16 +145,15 @@ def _normalized_intrinsics(Ps: NDArray) -> tuple[NDArray, NDArray]:
     """``(N, 3, 4)`` normalised projections and their ``(N, 4)`` ``fx, fy, cx, cy`` (pixels);
     the few geometries of a registration are normalised once (:func:`_normalized`). Writable
     copies: the kernels are compiled for writable arrays."""
-    P = np.ascontiguousarray(Ps, dtype=np.float64)
-    Pn, intr = _normalized(P.tobytes(), len(P))
+    Pn, intr = _normalized(np.ascontiguousarray(Ps, dtype=np.float64).tobytes())
     return Pn.copy(), intr.copy()
 
 
 @functools.lru_cache(maxsize=32)  # a registration renders through a few geometries many times
-def _normalized(key: bytes, n: int) -> tuple[NDArray, NDArray]:
-    """:func:`_normalized_intrinsics` of the ``n`` matrices stored in ``key`` (float64 bytes).
-    Saves a tenth of a tracked frame's time (0.3 ms a call, 80 calls)."""
-    Ps, K = pj.normalized_with_intrinsics(np.frombuffer(key, dtype=np.float64).reshape(n, 3, 4))
+def _normalized(key: bytes) -> tuple[NDArray, NDArray]:
+    """:func:`_normalized_intrinsics` of the matrices stored in ``key`` (float64 bytes, 3 x 4
+    each). Saves a tenth of a tracked frame's time (0.3 ms a call, 80 calls)."""
+    Ps, K = pj.normalized_with_intrinsics(np.frombuffer(key, dtype=np.float64).reshape(-1, 3, 4))
     intr = np.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], axis=1)
     for a in (Ps, intr):
         a.flags.writeable = False
@@ -291,8 +290,7 @@ def splat_pullback(
     H = np.zeros((len(Ps), rows + 2 * pad, cols + 2 * pad), dtype=np.float32)  # cache-friendly
     _compile_adjoint_blur()(np.ascontiguousarray(G), np.ascontiguousarray(radius[0]), pad, H)
     partial = np.zeros((len(starts), 6))
-    _compile_pullback()(Ps, T, pts, mass, starts.copy(), ends.copy(), owner.copy(), intr[0], pad,
-                        H, partial)  # fmt: skip
+    _compile_pullback()(Ps, T, pts, mass, starts, ends, owner, intr[0], pad, H, partial)
     out = np.zeros((L, 6))
     np.add.at(out, owner, partial)
     return out
@@ -300,9 +298,9 @@ def splat_pullback(
 
 @functools.lru_cache(maxsize=16)
 def _chunks(sizes: tuple[int, ...]) -> tuple[NDArray, NDArray, NDArray]:
-    """``(starts, ends, owner)`` (int64, read-only) of the adjoint's chunks of samples: at most
-    ``_CHUNK`` each, never straddling two bones (``sizes`` samples each, end to end), spread
-    over the threads."""
+    """``(starts, ends, owner)`` (int64, read-only: the adjoint's kernel is compiled for these
+    alone) of its chunks of samples: at most ``_CHUNK`` each, never straddling two bones
+    (``sizes`` samples each, end to end), spread over the threads."""
     offsets = np.cumsum([0, *sizes])
     starts = np.concatenate([np.arange(o, o + n, _CHUNK) for o, n in
                              zip(offsets[:-1], sizes, strict=True)]).astype(np.int64)  # fmt: skip

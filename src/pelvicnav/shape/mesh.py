@@ -237,7 +237,7 @@ def self_intersections(
     big = radius > np.quantile(radius, 0.99)
     tree = cKDTree(centre)
     small = tree.query_pairs(2.0 * float(radius[~big].max()), output_type="ndarray")
-    pairs = [small.astype(np.int64)]
+    pairs = [small]
     for i in np.flatnonzero(big):
         near = np.asarray(tree.query_ball_point(centre[i], radius[i] + radius.max()), dtype=int)
         near = near[~big[near] | (near > i)]  # a pair of two large triangles once
