@@ -207,3 +207,21 @@ def test_a_result_flagged_by_its_joints_is_implausible_not_only_in_question():
     bad = MultiBodyResult(**base, converged=False, warnings=(joints,), implausible=(joints,))
     assert bad.verdict == "implausible"
     assert bad.to_json()["verdict"] == "implausible" and bad.to_json()["implausible"] == [joints]
+
+
+def test_a_rescue_that_kept_the_pelvis_marks_the_first_attempts_warnings_as_its_own():
+    """The returned answer is the rescue's; the first attempt's warnings (its joints among
+    them) speak of another answer and say so, and the verdict is the returned answer's."""
+    from pelvicnav.register.result import MultiBodyResult
+
+    base = {"poses": {}, "projections": ()}
+    joints = "left_hip ends with 20% of its joint samples inside another bone: no dislocation"
+    first = MultiBodyResult(**base, similarity=0.874, converged=False, warnings=(joints,),
+                            implausible=(joints,))  # fmt: skip
+    again = MultiBodyResult(**base, similarity=0.885, converged=True, warnings=("own",))
+    got = mb._doubts_stand(_run(), first, again)
+    assert not got.converged and got.similarity == 0.885
+    assert got.warnings[0].startswith("rescued: the first attempt was flagged (similarity 0.874)")
+    assert "the first attempt's doubts stand" in got.warnings[0]
+    assert got.warnings[1:] == (f"first attempt: {joints}", "own")
+    assert got.implausible == () and got.verdict == "in question"

@@ -402,16 +402,31 @@ def _rescue(run: _Run, init: dict, answer: tuple, first: _Attempt, result: Multi
         return confirmed
     if again.similarity <= result.similarity:
         return result
-    note = (f"rescued: the first attempt was flagged (similarity {result.similarity:.3f}); "
-            f"stage 1 from another start scored better and gave this answer")  # fmt: skip
     clearly = again.similarity - result.similarity >= run.cfg.stage1.rescue_margin
     if clearly or _moved_pelvis(run, first, again) or _answered(run, first, again):
-        return replace(again, warnings=(note, *again.warnings))
-    same = (f"{note}, but with the same pelvis ({', '.join(_kept(run))} within "
+        return replace(again, warnings=(_rescued_note(result), *again.warnings))
+    return _doubts_stand(run, result, again)
+
+
+def _rescued_note(first: MultiBodyResult) -> str:
+    """The warning that opens a rescued result."""
+    return (f"rescued: the first attempt was flagged (similarity {first.similarity:.3f}); "
+            "stage 1 from another start scored better and gave this answer")  # fmt: skip
+
+
+def _doubts_stand(run: _Run, first: MultiBodyResult, again: MultiBodyResult) -> MultiBodyResult:
+    """The rescue's answer ``again``, flagged: it kept the pelvis where the ``first`` attempt
+    had it and scores less than ``rescue_margin`` better, so the first attempt's doubts stand.
+    The first attempt's warnings follow, each marked as the first attempt's: they speak of its
+    answer, not of the one returned (seed 347 case 27: the first attempt's hip had joints no
+    dislocation gives, the rescue's did not, and the verdict "in question" read against an
+    unmarked "no dislocation puts it there")."""
+    same = (f"{_rescued_note(first)}, but with the same pelvis ({', '.join(_kept(run))} within "
             f"{run.cfg.research.ambiguity[0]:g} mm / {run.cfg.research.ambiguity[1]:g} deg of the "
             f"first attempt) and a similarity less than {run.cfg.stage1.rescue_margin:g} better: "
             "the first attempt's doubts stand")  # fmt: skip
-    return replace(again, converged=False, warnings=(same, *result.warnings, *again.warnings))
+    said = tuple(f"first attempt: {w}" for w in first.warnings)
+    return replace(again, converged=False, warnings=(same, *said, *again.warnings))
 
 
 def _found_again(run: _Run, first: tuple, tried: list[tuple]) -> bool:
