@@ -244,15 +244,14 @@ def synthesize_ct(
         Sacrum, left and right innominate.
     faces : three (m_l, 3) int arrays
     rng : numpy.random.Generator
-        Everything random (tissue thicknesses, textures, gas) comes from it.
+        Everything random (tissue thicknesses, textures, gas) comes from it, in this order:
+        the body, the femurs, the bowel, the bones, the beads.
     options : CTOptions, optional
 
     Returns
     -------
     SynthCT
     """
-    from scipy.ndimage import distance_transform_edt, gaussian_filter
-
     opt = options or CTOptions()
     V = np.asarray(vertices, dtype=np.float64)
     if V.ndim != 3 or V.shape[0] != 3 or V.shape[2] != 3:
@@ -260,60 +259,87 @@ def synthesize_ct(
     if not np.all(np.isfinite(V)):
         raise ValueError("vertices contain NaN or infinity")
     shape, A = voxel_grid(V, opt.spacing, opt.margin_mm)
-    sp = np.asarray(opt.spacing, dtype=np.float64)
     labels = bone_labels(V, faces, shape, A)
-    x = A[0, 3] + sp[0] * np.arange(shape[0])
-    y = A[1, 3] + sp[1] * np.arange(shape[1])
-    z = A[2, 3] + sp[2] * np.arange(shape[2])
+    axes = tuple(A[d, 3] + opt.spacing[d] * np.arange(shape[d]) for d in range(3))
+    hu, depth_mm = _body(V, axes, shape, rng)
+    heads = np.zeros((2, 4))
+    if opt.femurs:
+        heads = _paint_femurs(hu, labels, V, faces, axes, opt, rng)
+    _paint_bowel(hu, labels, depth_mm[:, :, None] > 15, V[0].mean(axis=0), axes, opt, rng)
+    _paint_bones(hu, labels, opt, rng)
+    beads, bead_bones = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    if opt.beads > 0:
+        beads, bead_bones = _bead_centres(V, faces, opt, rng)
+        paint_beads(hu, A, beads, opt.bead_radius_mm)
+    return SynthCT(hu=Volume(hu, A), labels=labels, femoral_heads=heads, beads=beads,
+                   bead_bones=bead_bones, bead_radius=opt.bead_radius_mm)  # fmt: skip
 
-    # --- soft tissue: an elliptic body, the same cross-section along z ----------------------
+
+def _box(axes: tuple[NDArray, ...], lo: ArrayLike, hi: ArrayLike) -> tuple[slice, ...]:
+    """The voxel slices of the world box ``[lo, hi]`` (mm) on a grid's ``axes``."""
+    return tuple(slice(*np.clip(np.searchsorted(ax, [a, b]), 0, len(ax)))
+                 for ax, a, b in zip(axes, lo, hi, strict=True))  # fmt: skip
+
+
+def _body(V: NDArray, axes: tuple[NDArray, ...], shape: tuple[int, ...],
+          rng: np.random.Generator) -> tuple[NDArray[np.float32], NDArray]:  # fmt: skip
+    """Soft tissue: an elliptic body, the same cross-section along z (skin, fat, muscle), with
+    noise inside it. Returns the volume (HU) and each column's depth below the skin (mm)."""
+    x, y, _ = axes
     centre = V.reshape(-1, 3).mean(axis=0)
     half_width = 0.5 * np.ptp(V[..., 0]) + rng.uniform(35, 60)
     half_depth = 0.5 * np.ptp(V[..., 1]) + rng.uniform(45, 70)
     fat = rng.uniform(10, 30)
     X, Y = np.meshgrid(x - centre[0], y - centre[1] + rng.uniform(-5, 5), indexing="ij")
     rho = np.sqrt((X / half_width) ** 2 + (Y / half_depth) ** 2)  # 1 at the skin
-    mean_axis = 0.5 * (half_width + half_depth)
-    depth_mm = (1 - rho) * mean_axis  # approximate depth below the skin
+    depth_mm = (1 - rho) * 0.5 * (half_width + half_depth)  # approximate depth below the skin
     tissue = np.full(X.shape, -1000.0, dtype=np.float32)
     tissue[depth_mm >= 0] = 30.0  # skin
     tissue[depth_mm >= 2] = -100.0  # subcutaneous fat
     tissue[depth_mm >= 2 + fat] = 50.0  # muscle and viscera
     hu = np.broadcast_to(tissue[:, :, None], shape).astype(np.float32)
     hu += (depth_mm >= 0)[:, :, None] * rng.normal(0, 8, shape).astype(np.float32)
+    return hu, depth_mm
 
-    # --- femurs (image only) ----------------------------------------------------------------
+
+def _paint_femurs(hu: NDArray, labels: NDArray, V: NDArray, faces, axes: tuple[NDArray, ...],
+                  opt: CTOptions, rng: np.random.Generator) -> NDArray:  # fmt: skip
+    """Both femurs (head, neck and shaft capsules; image only, outside the labels) painted into
+    ``hu``; returns the femoral heads (2, 4): centre (mm) and radius."""
+    from scipy.ndimage import distance_transform_edt
+
     heads = np.zeros((2, 4))
-    if opt.femurs:
-        for h, (b, side) in enumerate(((1, 1.0), (2, -1.0))):
-            c, r = femoral_head(V[b], faces[b], lateral=(side, 0.0, 0.0))
-            heads[h] = [*c, r]
-            r_head = max(r - 2.0, 10.0)  # joint space of ~2 mm
-            neck_end = c + np.array([side * 0.75, 0.1, -0.65]) * 50.0
-            shaft_end = neck_end + np.array([-side * 0.15, 0.0, -1.0]) * 400.0
-            bbox_lo = np.minimum(c - 40, np.minimum(neck_end, shaft_end) - 25)
-            bbox_hi = np.maximum(c + 40, np.maximum(neck_end, shaft_end) + 25)
-            sl = [
-                slice(*np.clip(np.searchsorted(ax, [lo, hi]), 0, len(ax)))
-                for ax, lo, hi in zip((x, y, z), bbox_lo, bbox_hi, strict=True)
-            ]
-            sub = np.stack(np.meshgrid(x[sl[0]], y[sl[1]], z[sl[2]], indexing="ij"), -1)
-            pts = sub.reshape(-1, 3)
-            femur = (
-                (np.linalg.norm(pts - c, axis=1) <= r_head)
-                | _capsule(pts, c, neck_end, rng.uniform(14, 17))
-                | _capsule(pts, neck_end, shaft_end, rng.uniform(13, 16))
-            )
-            femur = femur.reshape(sub.shape[:3]) & (labels[sl[0], sl[1], sl[2]] == 0)
-            region = hu[sl[0], sl[1], sl[2]]
-            depth = distance_transform_edt(femur, sampling=sp)
-            cort = rng.uniform(*opt.cortical_hu)
-            region[femur] = np.where(depth[femur] < 3.0, cort, rng.uniform(200, 350))
-            hu[sl[0], sl[1], sl[2]] = region
+    for h, (b, side) in enumerate(((1, 1.0), (2, -1.0))):
+        c, r = femoral_head(V[b], faces[b], lateral=(side, 0.0, 0.0))
+        heads[h] = [*c, r]
+        r_head = max(r - 2.0, 10.0)  # joint space of ~2 mm
+        neck_end = c + np.array([side * 0.75, 0.1, -0.65]) * 50.0
+        shaft_end = neck_end + np.array([-side * 0.15, 0.0, -1.0]) * 400.0
+        sl = _box(axes, np.minimum(c - 40, np.minimum(neck_end, shaft_end) - 25),
+                  np.maximum(c + 40, np.maximum(neck_end, shaft_end) + 25))  # fmt: skip
+        sub = np.stack(np.meshgrid(*(ax[s] for ax, s in zip(axes, sl, strict=True)),
+                                   indexing="ij"), -1)  # fmt: skip
+        pts = sub.reshape(-1, 3)
+        femur = (
+            (np.linalg.norm(pts - c, axis=1) <= r_head)
+            | _capsule(pts, c, neck_end, rng.uniform(14, 17))
+            | _capsule(pts, neck_end, shaft_end, rng.uniform(13, 16))
+        )
+        femur = femur.reshape(sub.shape[:3]) & (labels[sl] == 0)
+        region = hu[sl]
+        depth = distance_transform_edt(femur, sampling=np.asarray(opt.spacing, dtype=np.float64))
+        cort = rng.uniform(*opt.cortical_hu)
+        region[femur] = np.where(depth[femur] < 3.0, cort, rng.uniform(200, 350))
+        hu[sl] = region
+    return heads
 
-    # --- bowel: gas pockets and contrast, anterior to the sacrum, above the pubis -----------
-    body = depth_mm[:, :, None] > 15
-    sacrum_c = V[0].mean(axis=0)
+
+def _paint_bowel(hu: NDArray, labels: NDArray, body: NDArray, sacrum_c: NDArray,
+                 axes: tuple[NDArray, ...], opt: CTOptions,
+                 rng: np.random.Generator) -> None:  # fmt: skip
+    """Bowel gas pockets and contrast (ellipsoids anterior to the sacrum, above the pubis,
+    inside the ``body`` columns and outside the bones) painted into ``hu``."""
+    x, y, z = axes
     for kind, enabled, value, count in (
         ("gas", opt.bowel_gas, -900.0, rng.integers(3, 9)),
         ("contrast", opt.contrast, 250.0, rng.integers(2, 5)),
@@ -325,26 +351,28 @@ def synthesize_ct(
                 [rng.uniform(-50, 50), rng.uniform(-90, -30), rng.uniform(-10, 60)]
             )
             radii = rng.uniform(8, 25, 3) if kind == "gas" else rng.uniform(10, 30, 3)
-            sl = [
-                slice(*np.clip(np.searchsorted(ax, [c - rr, c + rr]), 0, len(ax)))
-                for ax, c, rr in zip((x, y, z), ctr, radii, strict=True)
-            ]
+            sl = _box(axes, ctr - radii, ctr + radii)
             gx, gy, gz = np.meshgrid(x[sl[0]], y[sl[1]], z[sl[2]], indexing="ij")
             inside = ((gx - ctr[0]) / radii[0]) ** 2 + ((gy - ctr[1]) / radii[1]) ** 2 + (
                 (gz - ctr[2]) / radii[2]
             ) ** 2 <= 1
-            inside &= body[sl[0], sl[1]] & (labels[sl[0], sl[1], sl[2]] == 0)
-            region = hu[sl[0], sl[1], sl[2]]
+            inside &= body[sl[0], sl[1]] & (labels[sl] == 0)
+            region = hu[sl]
             region[inside] = value + rng.normal(0, 20, inside.sum())
-            hu[sl[0], sl[1], sl[2]] = region
+            hu[sl] = region
 
-    # --- bones: cortical shell over textured cancellous bone --------------------------------
+
+def _paint_bones(hu: NDArray, labels: NDArray, opt: CTOptions, rng: np.random.Generator) -> None:
+    """Each labelled bone painted into ``hu``: a cortical shell over textured cancellous bone."""
+    from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+    sp = np.asarray(opt.spacing, dtype=np.float64)
     for l in range(3):
         mask = labels == l + 1
         if not mask.any():
             continue
         idx = np.argwhere(mask)
-        lo, hi = np.maximum(idx.min(0) - 2, 0), np.minimum(idx.max(0) + 3, shape)
+        lo, hi = np.maximum(idx.min(0) - 2, 0), np.minimum(idx.max(0) + 3, labels.shape)
         box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(lo[2], hi[2]))
         m = mask[box]
         depth = distance_transform_edt(m, sampling=sp)
@@ -358,27 +386,21 @@ def synthesize_ct(
             depth[m] <= t_cort, c_hu + rng.normal(0, 40, m.sum()), cancellous[m]
         ).astype(np.float32)
         hu[box] = region
-    # --- fiducial beads on the bone surfaces (image only) -----------------------------------
-    beads = np.zeros((0, 3))
-    bead_bones = np.zeros(0, dtype=np.int64)
-    if opt.beads > 0:
-        from pelvicnav.shape.mesh import vertex_normals
 
-        bead_bones = rng.integers(0, 3, opt.beads) + 1
-        beads = np.empty((opt.beads, 3))
-        for n, lab in enumerate(bead_bones):
-            normals = vertex_normals(V[lab - 1], faces[lab - 1])
-            i = rng.integers(0, V.shape[1])
-            beads[n] = V[lab - 1, i] + normals[i] * opt.bead_radius_mm
-        paint_beads(hu, A, beads, opt.bead_radius_mm)
-    return SynthCT(
-        hu=Volume(hu, A),
-        labels=labels,
-        femoral_heads=heads,
-        beads=beads,
-        bead_bones=bead_bones,
-        bead_radius=opt.bead_radius_mm,
-    )
+
+def _bead_centres(V: NDArray, faces, opt: CTOptions,
+                  rng: np.random.Generator) -> tuple[NDArray, NDArray]:  # fmt: skip
+    """``opt.beads`` fiducial bead centres (mm) one radius outside random vertices of random
+    bones, and their bones (labels 1-3)."""
+    from pelvicnav.shape.mesh import vertex_normals
+
+    bead_bones = rng.integers(0, 3, opt.beads) + 1
+    beads = np.empty((opt.beads, 3))
+    for n, lab in enumerate(bead_bones):
+        normals = vertex_normals(V[lab - 1], faces[lab - 1])
+        i = rng.integers(0, V.shape[1])
+        beads[n] = V[lab - 1, i] + normals[i] * opt.bead_radius_mm
+    return beads, bead_bones
 
 
 def paint_beads(
