@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import asdict
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -53,20 +54,10 @@ def simulate_case(
         Bad dose, pattern, bone or view name, or a view that misses the pelvis; nothing is
         written then.
     """
-    from pelvicnav.geometry import transforms as tf
     from pelvicnav.io.atomic import atomic_directory
-    from pelvicnav.io.markups import write_markups
-    from pelvicnav.io.mesh_files import write_meshes
-    from pelvicnav.io.nifti import write_nifti
-    from pelvicnav.io.views import View, write_views
     from pelvicnav.phantom.ctsynth import synthesize_ct
     from pelvicnav.phantom.dislocate import apply_dislocation, draw_dislocation
-    from pelvicnav.phantom.xray import (
-        DetectorModel,
-        quanta_per_pixel,
-        simulate_radiograph,
-        standard_view,
-    )
+    from pelvicnav.phantom.xray import DetectorModel, quanta_per_pixel, standard_view
 
     # Validate the cheap things before the expensive ones.
     if not views:
@@ -82,21 +73,42 @@ def simulate_case(
     )
     ct = synthesize_ct(V, faces, rng=rng, options=ct_options)
     moved_ct, moved = apply_dislocation(ct, V, faces, disl, rng=rng)
-    radiographs = []
+    radiographs = _radiographs(moved_ct, carms, dose_ugy, rng)
+    truth = _truth(ct, moved_ct, disl, carms, subject_id=subject_id, seed=seed, dose_ugy=dose_ugy)
+    with atomic_directory(out) as tmp:
+        _write_case(tmp, ct, moved_ct, moved, faces, radiographs, truth, subject_id)
+        if dicom:
+            hu_int16 = np.clip(np.round(moved_ct.hu.data), -32768, 32767).astype(np.int16)
+            _write_dicom(tmp / "dicom", hu_int16, moved_ct.hu.world_from_ijk, radiographs, carms,
+                         subject_id, dose_ugy)  # fmt: skip
+    truth["moved_vertices"] = moved
+    return truth
+
+
+def _radiographs(moved_ct, carms: dict, dose_ugy: float, rng: np.random.Generator) -> list:
+    """One simulated radiograph (line integrals, quantum noise) of the dislocated patient per
+    C-arm, as views."""
+    from pelvicnav.io.views import View
+    from pelvicnav.phantom.xray import simulate_radiograph
+
+    out = []
     for name, carm in carms.items():
         rad = simulate_radiograph(moved_ct.hu, carm, dose_ugy=dose_ugy, rng=rng)
-        radiographs.append(
-            View(
-                name=name,
-                image=rad.line_integrals,
-                projection_matrix=carm.projection_matrix,
-                pixel_spacing=carm.pixel_spacing,
-                meta={"dose_ugy": dose_ugy, "orbit_deg": carm.orbit_deg, "tilt_deg": carm.tilt_deg},
-            )
-        )
+        out.append(View(name=name, image=rad.line_integrals,
+                        projection_matrix=carm.projection_matrix, pixel_spacing=carm.pixel_spacing,
+                        meta={"dose_ugy": dose_ugy, "orbit_deg": carm.orbit_deg,
+                              "tilt_deg": carm.tilt_deg}))  # fmt: skip
+    return out
+
+
+def _truth(ct, moved_ct, disl, carms: dict, *, subject_id: int, seed: int,
+           dose_ugy: float) -> dict:  # fmt: skip
+    """``truth.json``'s record: each bone's pose, the dislocation, beads, femoral heads, views."""
+    from pelvicnav.geometry import transforms as tf
+
     poses = {b: np.eye(4) for b in BONES}
-    poses[bone] = disl.transform
-    truth = {
+    poses[disl.bone] = disl.transform
+    return {
         "subject_id": int(subject_id),
         "seed": int(seed),
         "poses_world_from_ct": {b: T.tolist() for b, T in poses.items()},
@@ -127,22 +139,26 @@ def simulate_case(
         "note": "CT and label map are the dislocated patient; world_from_ct maps each bone of the "
         "preoperative (undislocated) CT frame to this patient's frame.",
     }
-    with atomic_directory(out) as tmp:
-        hu_int16 = np.clip(np.round(moved_ct.hu.data), -32768, 32767).astype(np.int16)
-        write_nifti(tmp / "ct.nii.gz", hu_int16, moved_ct.hu.world_from_ijk)
-        write_nifti(tmp / "labels.nii.gz", moved_ct.labels, moved_ct.hu.world_from_ijk)
-        write_views(tmp, radiographs, degrees_of_freedom=6)
-        (tmp / "meshes").mkdir()
-        for b, bone in enumerate(BONES):
-            title = f"pelvicnav simulate subject {subject_id} {bone} (CT frame)"
-            write_meshes(tmp / "meshes", bone, moved[b], faces[b], title=title)
-        write_markups(tmp / "landmarks.mrk.json", _landmarks(ct, moved_ct), name="landmarks")
-        if dicom:
-            _write_dicom(tmp / "dicom", hu_int16, moved_ct.hu.world_from_ijk, radiographs, carms,
-                         subject_id, dose_ugy)  # fmt: skip
-        (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
-    truth["moved_vertices"] = moved
-    return truth
+
+
+def _write_case(tmp: Path, ct, moved_ct, moved, faces, radiographs: list, truth: dict,
+                subject_id: int) -> None:  # fmt: skip
+    """The case's files (CT as int16 HU, labels, views, meshes, landmarks, truth) into ``tmp``."""
+    from pelvicnav.io.markups import write_markups
+    from pelvicnav.io.mesh_files import write_meshes
+    from pelvicnav.io.nifti import write_nifti
+    from pelvicnav.io.views import write_views
+
+    hu_int16 = np.clip(np.round(moved_ct.hu.data), -32768, 32767).astype(np.int16)
+    write_nifti(tmp / "ct.nii.gz", hu_int16, moved_ct.hu.world_from_ijk)
+    write_nifti(tmp / "labels.nii.gz", moved_ct.labels, moved_ct.hu.world_from_ijk)
+    write_views(tmp, radiographs, degrees_of_freedom=6)
+    (tmp / "meshes").mkdir()
+    for b, bone in enumerate(BONES):
+        title = f"pelvicnav simulate subject {subject_id} {bone} (CT frame)"
+        write_meshes(tmp / "meshes", bone, moved[b], faces[b], title=title)
+    write_markups(tmp / "landmarks.mrk.json", _landmarks(ct, moved_ct), name="landmarks")
+    (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
 
 
 def _landmarks(ct, moved_ct) -> dict:
