@@ -227,34 +227,9 @@ class TargetPlanner:
             if training_gaps is None
             else as_gap_array(training_gaps, V.shape[0], V.shape[2], "training_gaps")
         )
-        min_gap = {}
-        for k, pair in enumerate(JOINTS):
-            joint = joints[pair]
-            for side, mover in enumerate(pair):
-                g = gaps[:, k, side][:, joint.vertices[side]]
-                per_subject = [
-                    np.quantile(row[np.isfinite(row)], gap_quantile)
-                    for row in g
-                    if np.isfinite(row).any()
-                ]
-                min_gap[(pair, mover)] = (
-                    float(np.percentile(per_subject, gap_percentile)) if per_subject else 0.0
-                )
+        min_gap = _min_gaps(gaps, joints, gap_quantile, gap_percentile)
         plane = (
-            np.stack(
-                [
-                    subject_plane_gaps(
-                        V[n],
-                        fcs,
-                        vertex_sets={
-                            (k, side): joints[pair].vertices[side]
-                            for k, pair in enumerate(JOINTS)
-                            for side in range(2)
-                        },
-                    )
-                    for n in range(V.shape[0])
-                ]
-            )
+            _training_plane_gaps(V, fcs, joints)
             if training_plane_gaps is None
             else as_gap_array(training_plane_gaps, V.shape[0], V.shape[2], "training_plane_gaps")
         )
@@ -442,6 +417,33 @@ def _gaps_between(joint, mover, other, moving_v, fixed_v, faces) -> NDArray[np.f
         faces[BONES.index(other)],
         joint.faces[joint.side(other)],
     )
+
+
+def _min_gaps(gaps: NDArray, joints: dict, gap_quantile: float,
+              gap_percentile: float) -> dict[tuple, float]:  # fmt: skip
+    """The collision refinement's minimum joint space per (joint, moving bone), mm: the
+    ``gap_percentile``-th percentile over subjects of each subject's ``gap_quantile``-th lowest
+    gap on that side's joint vertices (``gaps``: (n_subjects, 3, 2, n_vertices), NaN where
+    unmeasured; 0 when no subject has one)."""
+    min_gap = {}
+    for k, pair in enumerate(JOINTS):
+        joint = joints[pair]
+        for side, mover in enumerate(pair):
+            g = gaps[:, k, side][:, joint.vertices[side]]
+            per_subject = [np.quantile(row[np.isfinite(row)], gap_quantile)
+                           for row in g if np.isfinite(row).any()]  # fmt: skip
+            min_gap[(pair, mover)] = (
+                float(np.percentile(per_subject, gap_percentile)) if per_subject else 0.0
+            )
+    return min_gap
+
+
+def _training_plane_gaps(V: NDArray, faces: tuple, joints: dict) -> NDArray:
+    """:func:`~pelvicnav.pose.joint_space.subject_plane_gaps` of every training subject on the
+    joint vertices, (n_subjects, 3, 2, n_vertices)."""
+    sets = {(k, side): joints[pair].vertices[side] for k, pair in enumerate(JOINTS)
+            for side in range(2)}  # fmt: skip
+    return np.stack([subject_plane_gaps(V[n], faces, vertex_sets=sets) for n in range(V.shape[0])])
 
 
 def _joint_set_gaps(V: NDArray, faces: tuple, joints: dict) -> NDArray[np.float64]:
