@@ -196,96 +196,86 @@ def _fold(
     from threadpoolctl import threadpool_limits
 
     from pelvicnav.pose.baselines import MirrorEstimator, SinglePelvisEstimator
-    from pelvicnav.pose.target import TargetPlanner
 
     with threadpool_limits(1):
         train = np.delete(vertices, test, axis=0)
-        train_gaps = np.delete(gaps[0], test, axis=0)
-        train_plane = np.delete(gaps[1], test, axis=0)
+        train_gaps = (np.delete(gaps[0], test, axis=0), np.delete(gaps[1], test, axis=0))
         subject = vertices[test]
         seen = subject if segmented is None else segmented[test]
+        baselines = {
+            "SSM_single": SinglePelvisEstimator.fit(
+                train, noise_variance=settings.ssm_noise_variance
+            ) if "SSM_single" in settings.methods else None,
+            "CM": MirrorEstimator.fit(train) if "CM" in settings.methods else None,
+        }  # fmt: skip
         rows: list[dict] = []
-        ssm = (
-            SinglePelvisEstimator.fit(train, noise_variance=settings.ssm_noise_variance)
-            if "SSM_single" in settings.methods
-            else None
-        )
-        cm = MirrorEstimator.fit(train) if "CM" in settings.methods else None
         for s_index, scenario in enumerate(settings.scenarios):
             dislocated = SCENARIOS[scenario]
             observed = tuple(b for b in BONES if b not in dislocated)
             rng = np.random.default_rng([settings.seed, subject_ids[test], s_index])
-            current, disl = {}, {}
-            for b in dislocated:
-                true = subject[BONES.index(b)]
-                D, dmm, ddeg = random_dislocation(
-                    rng,
-                    true.mean(axis=0),
-                    settings.max_dislocation_mm,
-                    settings.max_dislocation_deg,
-                )
-                current[b] = tf.apply(D, seen[BONES.index(b)])
-                disl[b] = (D, dmm, ddeg)
+            current, disl = _dislocated(subject, seen, dislocated, rng, settings)
             obs = {b: seen[BONES.index(b)] for b in observed}
-            estimates: dict[str, dict[str, tuple[NDArray, NDArray]]] = {}
-            if ssm is not None:
-                est = ssm.estimate(obs, current)
-                estimates["SSM_single"] = {b: (T, np.zeros(3)) for b, T in est.items()}
-            if cm is not None and len(dislocated) == 1:
-                est = cm.estimate(obs, current)
-                estimates["CM"] = {b: (T, np.zeros(3)) for b, T in est.items()}
-            if {"SPM", "SPM_CC", "SPM_collision"} & set(settings.methods):
-                planner = TargetPlanner.fit(
-                    train,
-                    faces,
-                    observed=observed,
-                    prior=settings.prior,
-                    n_modes=settings.n_modes,
-                    metric=settings.metric,
-                    frame_scale=settings.frame_scale,
-                    training_gaps=train_gaps,
-                    training_plane_gaps=train_plane,
-                )
-                for name, refine in (
-                    ("SPM", "none"),
-                    ("SPM_CC", "joint"),
-                    ("SPM_collision", "collision"),
-                ):
-                    if name in settings.methods:
-                        est = planner.estimate(obs, current, refine=refine)
-                        estimates[name] = {
-                            b: (e.target_from_current, e.refinement) for b, e in est.items()
-                        }
+            estimates = _estimates(obs, current, baselines, train, faces, train_gaps, settings)
             for method in settings.methods:
-                if method not in estimates:
-                    continue
-                for b, (C, refinement) in estimates[method].items():
-                    true = subject[BONES.index(b)]
-                    D, dmm, ddeg = disl[b]
-                    # Where the planned correction puts the real bone (with ASM input, the mesh
-                    # the planner saw carries the segmentation's own vertex error; the bone
-                    # does not): C applied to the true, dislocated bone.
-                    est_vertices = tf.apply(C @ D, true)
-                    t, r, mv = pose_errors(true, est_vertices)
-                    T_true = bone_pose(true.mean(axis=0))
-                    T_est = C @ D @ T_true
-                    rows.append(
-                        {
-                            "subject_id": subject_ids[test],
-                            "dislocated_bone": scenario,
-                            "evaluated_bone": b,
-                            "method": method,
-                            "translation_mm": t,
-                            "rotation_deg": r,
-                            "mean_vertex_mm": mv,
-                            "refinement_mm": float(np.linalg.norm(refinement)),
-                            "dislocation_mm": dmm,
-                            "dislocation_deg": ddeg,
-                            **{f"true_{i}{j}": T_true[i, j] for i in range(4) for j in range(4)},
-                            **{f"est_{i}{j}": T_est[i, j] for i in range(4) for j in range(4)},
-                        }
-                    )
+                for b, (C, refinement) in estimates.get(method, {}).items():
+                    scored = _scored(subject[BONES.index(b)], C, refinement, disl[b])
+                    rows.append({"subject_id": subject_ids[test], "dislocated_bone": scenario,
+                                 "evaluated_bone": b, "method": method, **scored})  # fmt: skip
     return rows
+
+
+def _dislocated(subject: NDArray, seen: NDArray, dislocated: tuple[str, ...],
+                rng: np.random.Generator,
+                settings: TargetPoseSettings) -> tuple[dict, dict]:  # fmt: skip
+    """Each ``dislocated`` bone moved by a random dislocation about its true centroid: the
+    moved meshes as the planner sees them (``seen``), and bone -> (D, mm, deg)."""
+    current, disl = {}, {}
+    for b in dislocated:
+        true = subject[BONES.index(b)]
+        D, dmm, ddeg = random_dislocation(rng, true.mean(axis=0), settings.max_dislocation_mm,
+                                          settings.max_dislocation_deg)  # fmt: skip
+        current[b] = tf.apply(D, seen[BONES.index(b)])
+        disl[b] = (D, dmm, ddeg)
+    return current, disl
+
+
+def _estimates(obs: dict, current: dict, baselines: dict, train: NDArray, faces: tuple,
+               train_gaps: tuple, settings: TargetPoseSettings) -> dict[str, dict]:  # fmt: skip
+    """method -> bone -> (target_from_current, refinement) of every method of ``settings``
+    that applies (the mirror needs a single dislocated bone)."""
+    from pelvicnav.pose.target import TargetPlanner
+
+    estimates: dict[str, dict[str, tuple[NDArray, NDArray]]] = {}
+    for name, estimator in baselines.items():
+        if estimator is not None and (name != "CM" or len(current) == 1):
+            est = estimator.estimate(obs, current)
+            estimates[name] = {b: (T, np.zeros(3)) for b, T in est.items()}
+    refinements = (("SPM", "none"), ("SPM_CC", "joint"), ("SPM_collision", "collision"))
+    spm = [(n, r) for n, r in refinements if n in settings.methods]
+    if spm:
+        planner = TargetPlanner.fit(train, faces, observed=tuple(obs), prior=settings.prior,
+                                    n_modes=settings.n_modes, metric=settings.metric,
+                                    frame_scale=settings.frame_scale, training_gaps=train_gaps[0],
+                                    training_plane_gaps=train_gaps[1])  # fmt: skip
+        for name, refine in spm:
+            est = planner.estimate(obs, current, refine=refine)
+            estimates[name] = {b: (e.target_from_current, e.refinement) for b, e in est.items()}
+    return estimates
+
+
+def _scored(true: NDArray, C: NDArray, refinement: NDArray, disl: tuple) -> dict:
+    """One estimate's errors: where the planned correction ``C`` puts the real bone ``true``
+    (its CT vertices) after its dislocation ``disl`` (D, mm, deg). With ASM input the mesh the
+    planner saw carries the segmentation's own vertex error; the bone does not."""
+    D, dmm, ddeg = disl
+    t, r, mv = pose_errors(true, tf.apply(C @ D, true))
+    T_true = bone_pose(true.mean(axis=0))
+    T_est = C @ D @ T_true
+    return {"translation_mm": t, "rotation_deg": r, "mean_vertex_mm": mv,
+            "refinement_mm": float(np.linalg.norm(refinement)), "dislocation_mm": dmm,
+            "dislocation_deg": ddeg,
+            **{f"true_{i}{j}": T_true[i, j] for i in range(4) for j in range(4)},
+            **{f"est_{i}{j}": T_est[i, j] for i in range(4) for j in range(4)}}  # fmt: skip
 
 
 _CACHE: dict = {}
