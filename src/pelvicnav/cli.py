@@ -1032,7 +1032,7 @@ def register(
         raise _fail(str(err)) from None
     status = {
         "converged": "[green]converged[/]",
-        "in question": "[red]NOT converged[/]",
+        "in question": "[red]NOT converged: in question, see the warnings[/]",
         "implausible": "[red]NOT converged: its joints are implausible, likely wrong[/]",
     }[result.verdict]
     console.print(
