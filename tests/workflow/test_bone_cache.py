@@ -46,6 +46,24 @@ def test_the_same_files_read_from_the_cache_give_the_same_bones(tmp_path):
     assert not bones_of_files(ct, labels, "ours", None, (4,))[2]
 
 
+def test_the_files_are_read_once_on_a_miss_and_not_at_all_on_a_hit(tmp_path, monkeypatch):
+    """The reads start as soon as the key says they are needed (while the engine imports), and
+    only then: a damaged entry (stored but refused) is read afresh too."""
+    import pelvicnav.io.volume as volume
+
+    calls = []
+    read_ct = volume.read_ct
+    monkeypatch.setattr(volume, "read_ct", lambda *a, **k: calls.append(a[0]) or read_ct(*a, **k))
+    ct, labels = _files(tmp_path)
+    assert not bones_of_files(ct, labels, "ours", None, FACTORS)[2]
+    assert calls == [ct]
+    assert bones_of_files(ct, labels, "ours", None, FACTORS)[2]
+    assert calls == [ct]  # a hit reads nothing
+    _entries()[0].write_bytes(b"damaged")
+    assert not bones_of_files(ct, labels, "ours", None, FACTORS)[2]
+    assert calls == [ct, ct]
+
+
 def test_changed_bytes_or_a_damaged_entry_are_read_afresh(tmp_path):
     ct, labels = _files(tmp_path)
     bones_of_files(ct, labels, "ours", None, FACTORS)

@@ -112,6 +112,12 @@ def cache_key(digest: str, **options) -> str:
     return h.hexdigest()
 
 
+def stored(key: str) -> bool:
+    """Whether an entry is stored under ``key`` (:func:`load` may still refuse it)."""
+    folder = cache_dir()
+    return folder is not None and (folder / f"bones-{key}.npz").is_file()
+
+
 def load(key: str) -> CachedBones | None:
     """The entry stored under ``key``, or None (no cache, no entry, or an unreadable one)."""
     folder = cache_dir()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,13 +25,17 @@ def read_ct_and_bones(
     series: str | None = None,
     *,
     meanwhile: Callable[[], object] | None = None,
+    reads: tuple[Future, Future] | None = None,
 ) -> tuple[NDArray, NDArray[np.float64], NDArray, NDArray]:
     """``(hu, world_from_ijk, ours, centroids)`` (each bone's label centroid, world mm);
     ValueError naming the file on bad input (the CT's first).
 
     The two files are read in threads (decompression releases the GIL) while this thread loads
     the compiled kernels and runs ``meanwhile`` (say, imports the caller will need): on a
-    512 x 512 x 400 NIfTI CT, ``pelvicnav register`` spent 0.8 s less than reading first."""
+    512 x 512 x 400 NIfTI CT, ``pelvicnav register`` spent 0.8 s less than reading first.
+    ``reads``: the two files' reads already started (futures of
+    :func:`~pelvicnav.io.volume.read_ct` of ``ct`` and :func:`~pelvicnav.io.volume.read_volume`
+    of ``labels``), else they are started here."""
     from concurrent.futures import ThreadPoolExecutor
 
     from pelvicnav.io.volume import labels_on_grid, read_ct, read_volume
@@ -38,8 +43,10 @@ def read_ct_and_bones(
 
     scheme = parse_scheme(label_scheme)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        ct_read = pool.submit(read_ct, ct, series=series)
-        labels_read = pool.submit(read_volume, labels)
+        ct_read, labels_read = reads or (
+            pool.submit(read_ct, ct, series=series),
+            pool.submit(read_volume, labels),
+        )
         _load_kernels()
         if meanwhile is not None:
             meanwhile()

@@ -210,18 +210,25 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
     (:func:`~pelvicnav.workflow.inputs.read_ct_and_bones`), sampled into bone models for the
     pyramid ``factors`` and stored. ``voxel_digest``: with the CT's digest as a plan records it
     (:func:`pelvicnav.io.plan.fingerprint`). ValueError naming the file on bad input."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from pelvicnav.workflow import bone_cache
     from pelvicnav.workflow.inputs import read_ct_and_bones
 
-    key = _cache_key_meanwhile(ct, labels, label_scheme, series, factors, _import_engine)
-    hit = None if key is None else bone_cache.load(key)
-    if hit is not None and (hit.voxel_digest is not None or not voxel_digest):
-        return hit, 0.0, True  # nothing built (hashing and loading count as reading)
-    from pelvicnav.drr.volume import Volume
-    from pelvicnav.register.pyramid import splat_renderer
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        keyed = pool.submit(_key_then_read, pool, ct, labels, label_scheme, series, factors)
+        _import_engine()  # meanwhile, in this thread: a registration needs it either way
+        key, reads = keyed.result()
+        hit = None if key is None else bone_cache.load(key)
+        if hit is not None and (hit.voxel_digest is not None or not voxel_digest):
+            return hit, 0.0, True  # nothing built (hashing and loading count as reading)
+        from pelvicnav.drr.volume import Volume
+        from pelvicnav.register.pyramid import splat_renderer
 
-    data, affine, lab, centroids = read_ct_and_bones(ct, labels, label_scheme, series,
-                                                     meanwhile=_import_writers)  # fmt: skip
+        data, affine, lab, centroids = read_ct_and_bones(
+            ct, labels, label_scheme, series, meanwhile=_import_writers,
+            reads=reads or _reads(pool, ct, labels, series),
+        )  # fmt: skip
     t_models = time.perf_counter()
     try:  # one set of bone models for registration and overlays
         models = splat_renderer(Volume(data, affine), lab, factors)  # integer HU, no float copy
@@ -239,28 +246,37 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
     return entry, t_models, False
 
 
-def _cache_key_meanwhile(ct, labels, label_scheme, series, factors, meanwhile):
-    """The bone cache's key of these files (None: no cache, or a file it cannot take), hashed in
-    a thread (hashing releases the GIL: 0.1 s for a 52 MB CT) while this one runs ``meanwhile``,
-    which a registration needs either way."""
-    from concurrent.futures import ThreadPoolExecutor
-
+def _key_then_read(pool, ct, labels, label_scheme, series, factors) -> tuple:
+    """``(key, reads)``: the bone cache's key of these files (None: no cache, or a file it
+    cannot take), hashed in this pool thread (0.1 s for a 52 MB CT: hashing releases the GIL)
+    while the caller imports the engine; and, when no entry is stored under it, the CT and label
+    map already being read (:func:`_reads`), else None. Reading as soon as the key says it is
+    needed, not after the imports, saves a CT's first command the imports' time."""
     from pelvicnav.workflow import bone_cache
 
-    if bone_cache.cache_dir() is None or not all(map(bone_cache.cacheable, (ct, labels))):
-        meanwhile()
-        return None
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        hashing = pool.submit(bone_cache.files_digest, ct, labels)
-        meanwhile()
+    key = None
+    if bone_cache.cache_dir() is not None and all(map(bone_cache.cacheable, (ct, labels))):
         try:
-            digest = hashing.result()
+            digest = bone_cache.files_digest(ct, labels)
         except OSError:
-            return None  # unreadable: the reader says why, naming the file
-    from pelvicnav.register.pyramid import SAMPLE_MM_PER_FACTOR
+            digest = None  # unreadable: the reader says why, naming the file
+        if digest is not None:
+            from pelvicnav.register.pyramid import SAMPLE_MM_PER_FACTOR
 
-    return bone_cache.cache_key(digest, scheme=label_scheme, series=series,
-                                factors=list(factors), sample_mm=SAMPLE_MM_PER_FACTOR)  # fmt: skip
+            options = {"scheme": label_scheme, "series": series, "factors": list(factors),
+                       "sample_mm": SAMPLE_MM_PER_FACTOR}  # fmt: skip
+            key = bone_cache.cache_key(digest, **options)
+    if key is not None and bone_cache.stored(key):
+        return key, None
+    return key, _reads(pool, ct, labels, series)
+
+
+def _reads(pool, ct, labels, series) -> tuple:
+    """The CT (:func:`~pelvicnav.io.volume.read_ct`) and the label map being read in ``pool``
+    (decompression releases the GIL): two futures."""
+    from pelvicnav.io.volume import read_ct, read_volume
+
+    return pool.submit(read_ct, ct, series=series), pool.submit(read_volume, labels)
 
 
 def _import_engine() -> None:
