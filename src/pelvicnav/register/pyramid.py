@@ -21,7 +21,7 @@ from pelvicnav.drr.volume import Volume
 from pelvicnav.geometry import projection as pj
 from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.similarity import GradientNCC, GradientOrientation
-from pelvicnav.register.settings import PyramidSettings
+from pelvicnav.register.settings import SAMPLE_MM_PER_FACTOR, PyramidSettings
 
 __all__ = [
     "SAMPLE_MM_PER_FACTOR",
@@ -33,10 +33,6 @@ __all__ = [
     "noise_to_edge",
     "splat_renderer",
 ]
-
-# Bone model sample spacing per unit of pyramid binning (mm): 3 mm at 4x, 1.5 mm at 2x. The
-# splatting cost grows as 1 / spacing; finer samples did not improve accuracy measurably.
-SAMPLE_MM_PER_FACTOR = 0.75
 
 _METRICS = {"go": GradientOrientation, "gncc": GradientNCC}
 

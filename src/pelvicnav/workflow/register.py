@@ -261,7 +261,7 @@ def _key_then_read(pool, ct, labels, label_scheme, series, factors) -> tuple:
         except OSError:
             digest = None  # unreadable: the reader says why, naming the file
         if digest is not None:
-            from pelvicnav.register.pyramid import SAMPLE_MM_PER_FACTOR
+            from pelvicnav.register.settings import SAMPLE_MM_PER_FACTOR  # light: no scipy
 
             options = {"scheme": label_scheme, "series": series, "factors": list(factors),
                        "sample_mm": SAMPLE_MM_PER_FACTOR}  # fmt: skip
