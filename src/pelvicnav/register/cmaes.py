@@ -137,20 +137,7 @@ def minimize_cmaes(
     x0 = np.asarray(x0, dtype=np.float64)
     if sigma <= 0 or population < 2:
         raise ValueError(f"need sigma > 0 and population >= 2, got {sigma}, {population}")
-    opts = {
-        "popsize": int(population),
-        "seed": int(seed) % (2**32 - 1) + 1,  # pycma treats seed 0 as "random"
-        "maxiter": int(max_generations),
-        "tolfun": tol_fun,
-        "tolx": tol_x,
-        "verbose": -9,
-        "verb_log": 0,
-        "verb_disp": 0,
-    }
-    if bounds is not None:
-        opts["bounds"] = [list(np.asarray(b, dtype=np.float64)) for b in bounds]
-    if scales is not None:
-        opts["CMA_stds"] = list(np.asarray(scales, dtype=np.float64))
+    opts = _options(population, seed, max_generations, tol_fun, tol_x, bounds, scales)
     es = cma.CMAEvolutionStrategy(x0.tolist(), float(sigma), opts)
     history = []
     best_x, best_f = x0.copy(), np.inf
@@ -178,3 +165,23 @@ def minimize_cmaes(
         history=np.asarray(history),
         final_std=float(np.max(es.result.stds)),
     )
+
+
+def _options(population: int, seed: int, max_generations: int, tol_fun: float, tol_x: float,
+             bounds, scales) -> dict:  # fmt: skip
+    """pycma's options for :func:`minimize_cmaes` (silent: no output, no log files)."""
+    opts = {
+        "popsize": int(population),
+        "seed": int(seed) % (2**32 - 1) + 1,  # pycma treats seed 0 as "random"
+        "maxiter": int(max_generations),
+        "tolfun": tol_fun,
+        "tolx": tol_x,
+        "verbose": -9,
+        "verb_log": 0,
+        "verb_disp": 0,
+    }
+    if bounds is not None:
+        opts["bounds"] = [list(np.asarray(b, dtype=np.float64)) for b in bounds]
+    if scales is not None:
+        opts["CMA_stds"] = list(np.asarray(scales, dtype=np.float64))
+    return opts
