@@ -252,7 +252,7 @@ def _estimates(obs: dict, current: dict, baselines: dict, train: NDArray, faces:
             estimates[name] = {b: (T, np.zeros(3)) for b, T in est.items()}
     refinements = (("SPM", "none"), ("SPM_CC", "joint"), ("SPM_collision", "collision"))
     spm = [(n, r) for n, r in refinements if n in settings.methods]
-    if spm:
+    if spm:  # obs is keyed by the observed bones in BONES order
         planner = TargetPlanner.fit(train, faces, observed=tuple(obs), prior=settings.prior,
                                     n_modes=settings.n_modes, metric=settings.metric,
                                     frame_scale=settings.frame_scale, training_gaps=train_gaps[0],
