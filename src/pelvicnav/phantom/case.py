@@ -23,7 +23,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["simulate_case"]
 
@@ -75,10 +75,10 @@ def simulate_case(
     moved_ct, moved = apply_dislocation(ct, V, faces, disl, rng=rng)
     radiographs = _radiographs(moved_ct, carms, dose_ugy, rng)
     truth = _truth(ct, moved_ct, disl, carms, subject_id=subject_id, seed=seed, dose_ugy=dose_ugy)
+    hu_int16 = np.clip(np.round(moved_ct.hu.data), -32768, 32767).astype(np.int16)
     with atomic_directory(out) as tmp:
-        _write_case(tmp, ct, moved_ct, moved, faces, radiographs, truth, subject_id)
+        _write_case(tmp, hu_int16, ct, moved_ct, moved, faces, radiographs, truth, subject_id)
         if dicom:
-            hu_int16 = np.clip(np.round(moved_ct.hu.data), -32768, 32767).astype(np.int16)
             _write_dicom(tmp / "dicom", hu_int16, moved_ct.hu.world_from_ijk, radiographs, carms,
                          subject_id, dose_ugy)  # fmt: skip
     truth["moved_vertices"] = moved
@@ -141,15 +141,15 @@ def _truth(ct, moved_ct, disl, carms: dict, *, subject_id: int, seed: int,
     }
 
 
-def _write_case(tmp: Path, ct, moved_ct, moved, faces, radiographs: list, truth: dict,
-                subject_id: int) -> None:  # fmt: skip
-    """The case's files (CT as int16 HU, labels, views, meshes, landmarks, truth) into ``tmp``."""
+def _write_case(tmp: Path, hu_int16: NDArray, ct, moved_ct, moved, faces, radiographs: list,
+                truth: dict, subject_id: int) -> None:  # fmt: skip
+    """The case's files (the CT ``hu_int16``, labels, views, meshes, landmarks, truth) into
+    ``tmp``."""
     from pelvicnav.io.markups import write_markups
     from pelvicnav.io.mesh_files import write_meshes
     from pelvicnav.io.nifti import write_nifti
     from pelvicnav.io.views import write_views
 
-    hu_int16 = np.clip(np.round(moved_ct.hu.data), -32768, 32767).astype(np.int16)
     write_nifti(tmp / "ct.nii.gz", hu_int16, moved_ct.hu.world_from_ijk)
     write_nifti(tmp / "labels.nii.gz", moved_ct.labels, moved_ct.hu.world_from_ijk)
     write_views(tmp, radiographs, degrees_of_freedom=6)

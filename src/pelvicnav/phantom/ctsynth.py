@@ -308,6 +308,7 @@ def _paint_femurs(hu: NDArray, labels: NDArray, V: NDArray, faces, axes: tuple[N
     ``hu``; returns the femoral heads (2, 4): centre (mm) and radius."""
     from scipy.ndimage import distance_transform_edt
 
+    sp = np.asarray(opt.spacing, dtype=np.float64)
     heads = np.zeros((2, 4))
     for h, (b, side) in enumerate(((1, 1.0), (2, -1.0))):
         c, r = femoral_head(V[b], faces[b], lateral=(side, 0.0, 0.0))
@@ -327,7 +328,7 @@ def _paint_femurs(hu: NDArray, labels: NDArray, V: NDArray, faces, axes: tuple[N
         )
         femur = femur.reshape(sub.shape[:3]) & (labels[sl] == 0)
         region = hu[sl]
-        depth = distance_transform_edt(femur, sampling=np.asarray(opt.spacing, dtype=np.float64))
+        depth = distance_transform_edt(femur, sampling=sp)
         cort = rng.uniform(*opt.cortical_hu)
         region[femur] = np.where(depth[femur] < 3.0, cort, rng.uniform(200, 350))
         hu[sl] = region

@@ -112,18 +112,23 @@ def cache_key(digest: str, **options) -> str:
     return h.hexdigest()
 
 
+def _entry(key: str) -> Path | None:
+    """The file of the entry under ``key``, or None without a cache."""
+    folder = cache_dir()
+    return None if folder is None else folder / f"bones-{key}.npz"
+
+
 def stored(key: str) -> bool:
     """Whether an entry is stored under ``key`` (:func:`load` may still refuse it)."""
-    folder = cache_dir()
-    return folder is not None and (folder / f"bones-{key}.npz").is_file()
+    path = _entry(key)
+    return path is not None and path.is_file()
 
 
 def load(key: str) -> CachedBones | None:
     """The entry stored under ``key``, or None (no cache, no entry, or an unreadable one)."""
-    folder = cache_dir()
-    path = None if folder is None else folder / f"bones-{key}.npz"
-    if path is None or not path.is_file():
+    if not stored(key):
         return None
+    path = _entry(key)
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
@@ -143,8 +148,8 @@ def load(key: str) -> CachedBones | None:
 
 def store(key: str, entry: CachedBones) -> None:
     """Write ``entry`` under ``key`` (atomically); a cache that cannot be written is skipped."""
-    folder = cache_dir()
-    if folder is None:
+    path = _entry(key)
+    if path is None:
         return
     arrays, spacing = {}, []
     for lv, models in enumerate(entry.models.models):
@@ -158,7 +163,7 @@ def store(key: str, entry: CachedBones) -> None:
     buffer = io.BytesIO()
     np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
     try:  # two workers may store the same CT at once: write_bytes names its temporary uniquely
-        folder.mkdir(parents=True, exist_ok=True)
-        write_bytes(folder / f"bones-{key}.npz", buffer.getvalue())
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes(path, buffer.getvalue())
     except OSError:
         pass  # a cache that cannot be written is skipped

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["BoneInputs", "bones_of_ct", "fit_bones", "read_ct_and_bones"]
+__all__ = ["BoneInputs", "bones_of_ct", "fit_bones", "read_ct_and_bones", "start_reads"]
 
 
 def read_ct_and_bones(
@@ -38,15 +38,12 @@ def read_ct_and_bones(
     of ``labels``), else they are started here."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from pelvicnav.io.volume import labels_on_grid, read_ct, read_volume
+    from pelvicnav.io.volume import labels_on_grid
     from pelvicnav.shape.labels import check_bone_labels, parse_scheme, to_bone_labels
 
     scheme = parse_scheme(label_scheme)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        ct_read, labels_read = reads or (
-            pool.submit(read_ct, ct, series=series),
-            pool.submit(read_volume, labels),
-        )
+        ct_read, labels_read = reads or start_reads(pool, ct, labels, series)
         _load_kernels()
         if meanwhile is not None:
             meanwhile()
@@ -55,6 +52,16 @@ def read_ct_and_bones(
     ours = to_bone_labels(raw, scheme)
     centroids = check_bone_labels(hu, ours, A, source=str(labels), raw_labels=raw)
     return hu, A, ours, centroids
+
+
+def start_reads(pool, ct: str | os.PathLike, labels: str | os.PathLike,
+                series: str | None = None) -> tuple[Future, Future]:  # fmt: skip
+    """The CT (:func:`~pelvicnav.io.volume.read_ct`) and its label map
+    (:func:`~pelvicnav.io.volume.read_volume`) being read in ``pool``, a thread pool
+    (decompression releases the GIL): two futures, for :func:`read_ct_and_bones` ``reads``."""
+    from pelvicnav.io.volume import read_ct, read_volume
+
+    return pool.submit(read_ct, ct, series=series), pool.submit(read_volume, labels)
 
 
 def _load_kernels() -> None:

@@ -227,7 +227,7 @@ def bones_of_files(ct, labels, label_scheme: str, series: str | None, factors, *
 
         data, affine, lab, centroids = read_ct_and_bones(
             ct, labels, label_scheme, series, meanwhile=_import_writers,
-            reads=reads or _reads(pool, ct, labels, series),
+            reads=reads,  # None (a stored entry refused): read_ct_and_bones starts them
         )  # fmt: skip
     t_models = time.perf_counter()
     try:  # one set of bone models for registration and overlays
@@ -250,8 +250,9 @@ def _key_then_read(pool, ct, labels, label_scheme, series, factors) -> tuple:
     """``(key, reads)``: the bone cache's key of these files (None: no cache, or a file it
     cannot take), hashed in this pool thread (0.1 s for a 52 MB CT: hashing releases the GIL)
     while the caller imports the engine; and, when no entry is stored under it, the CT and label
-    map already being read (:func:`_reads`), else None. Reading as soon as the key says it is
-    needed, not after the imports, saves a CT's first command the imports' time."""
+    map already being read (:func:`~pelvicnav.workflow.inputs.start_reads`), else None. Reading
+    as soon as the key says it is needed, not after the imports, saves a CT's first command the
+    imports' time."""
     from pelvicnav.workflow import bone_cache
 
     key = None
@@ -268,15 +269,9 @@ def _key_then_read(pool, ct, labels, label_scheme, series, factors) -> tuple:
             key = bone_cache.cache_key(digest, **options)
     if key is not None and bone_cache.stored(key):
         return key, None
-    return key, _reads(pool, ct, labels, series)
+    from pelvicnav.workflow.inputs import start_reads
 
-
-def _reads(pool, ct, labels, series) -> tuple:
-    """The CT (:func:`~pelvicnav.io.volume.read_ct`) and the label map being read in ``pool``
-    (decompression releases the GIL): two futures."""
-    from pelvicnav.io.volume import read_ct, read_volume
-
-    return pool.submit(read_ct, ct, series=series), pool.submit(read_volume, labels)
+    return key, start_reads(pool, ct, labels, series)
 
 
 def _import_engine() -> None:
