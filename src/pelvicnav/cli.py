@@ -1035,6 +1035,8 @@ def register(
         "in question": "[red]NOT converged: in question, see the warnings[/]",
         "implausible": "[red]NOT converged: its joints are implausible, likely wrong[/]",
     }[result.verdict]
+    if result.converged and result.questions:
+        status += " (its questions settled by a second opinion, see the warnings)"
     console.print(
         f"wrote {out} ({record['mode']}): {status}, GO {result.similarity:.3f}, "
         f"{result.seconds:.1f} s " + ", ".join(f"{s.name} {s.seconds:.1f} s" for s in result.stages)

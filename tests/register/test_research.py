@@ -14,6 +14,13 @@ from pelvicnav.register.settings import RegistrationSettings
 BONES = ("sacrum", "left_hip", "right_hip")
 
 
+def _poses(i, X):
+    """A bone at its parameters ``X`` (N, 6): the first recorded as the x translation."""
+    T = np.tile(np.eye(4), (len(X), 1, 1))
+    T[:, 0, 3] = np.asarray(X)[:, 0]
+    return T
+
+
 def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None, joints=None,
          final=None, fine=None):  # fmt: skip
     """Re-search with each search returning (f_alt, d_mm) from ``outcomes`` (re-searches first,
@@ -54,7 +61,8 @@ def _run(monkeypatch, outcomes, n_views=2, count=1, rays=0, turns=0, images=None
     fine = fine or (lambda kind: None)
     monkeypatch.setattr(rs, "fine_search", lambda *args: fine("fine"))
     monkeypatch.setattr(rs, "fine_ray_check", lambda *args: fine("check"))
-    problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES), dislocated="left_hip",
+    problem = SimpleNamespace(blocks=SimpleNamespace(bones=BONES, bone_poses=_poses),
+                              dislocated="left_hip",
                               settings=RegistrationSettings(), searched=[0, 1],
                               prior=None)  # fmt: skip
     out = rs.research(problem, np.zeros(18), [None] * n_views, seed=0, count=count)
@@ -73,6 +81,9 @@ def test_a_far_losing_re_search_earns_one_more_and_a_second_miss_flags(monkeypat
     assert calls == [0, 1]  # one retry only
     assert any("found once only" in w for w in out.warnings)
     assert out.disagreement["left_hip"] == pytest.approx(13.5)
+    # every search's answer and the one it was judged against are there for a second opinion
+    xs = [T[0, 3] for T in out.found["left_hip"]]
+    assert xs == [0.0, 1.0, 0.0, 2.0]
 
 
 def test_a_far_winning_re_search_takes_over_and_needs_confirming(monkeypatch):
@@ -299,7 +310,8 @@ def _fine(monkeypatch, f, population=30, check=False, d_mm=17.7, optima=1):
     research = replace(settings.research, fine_population=population,
                        fine_ray_mm=20.0 if population else 0.0)  # fmt: skip
     problem = SimpleNamespace(
-        blocks=SimpleNamespace(bones=BONES), settings=replace(settings, research=research),
+        blocks=SimpleNamespace(bones=BONES, bone_poses=_poses),
+        settings=replace(settings, research=research),
         fine=1, box=lambda i: np.full(6, 25.0),
         objective=lambda i, y, level: lambda X: np.full(len(X), -1.0),
     )  # fmt: skip

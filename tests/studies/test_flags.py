@@ -41,3 +41,18 @@ def test_implausible_flags_are_counted_where_the_rows_carry_them():
     plain = [{k: v for k, v in r.items() if k != "implausible"} for r in rows]
     assert "implausible" not in flag_counts(plain, "error_mm")
     assert "implausible" not in flag_line(flag_counts(plain, "error_mm"))
+
+
+def test_settled_registrations_are_counted_where_the_rows_carry_them():
+    rows = [
+        {"case_id": 0, "error_mm": 0.3, "converged": "True", "settled": "True"},
+        {"case_id": 1, "error_mm": 6.0, "converged": "True", "settled": "True"},
+        {"case_id": 2, "error_mm": 0.2, "converged": "False", "settled": "False"},
+        {"case_id": 3, "error_mm": 0.1, "converged": "True", "settled": "False"},
+    ]
+    c = flag_counts(rows, "error_mm")
+    assert (c["settled"], c["settled_gross"], c["gross_flagged"]) == (2, 1, 0)
+    assert "2 in question settled by the second opinion" in flag_line(c)
+    assert "1 of them with an error over 4 mm" in flag_line(c)
+    plain = [{k: v for k, v in r.items() if k != "settled"} for r in rows]
+    assert "settled" not in flag_counts(plain, "error_mm")

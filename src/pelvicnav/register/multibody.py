@@ -22,7 +22,9 @@ joints no dislocation gives (closed through, or opened far past the CT's). An am
 other answer has such joints is a doubt: it calls the rescue, and a second attempt that ends at
 the same answer settles it (:func:`_confirmed`). Stage 1's own limit is a warning
 only (stage 2 refines from its answer): with one view, 9 DoF, it was reached in every case and
-flagged 8 good registrations of 12 (atlas, seed 7).
+flagged 8 good registrations of 12 (atlas, seed 7). A result flagged only because the
+dislocated bone's answer is in question gets a second opinion at the end, which the poses do not
+depend on (:func:`_second_opinion`, :mod:`~pelvicnav.register.opinion`).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from pelvicnav.geometry import transforms as tf
 from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.errors import pose_disagreement
 from pelvicnav.register.initial import about, initial_pose, initial_translation
+from pelvicnav.register.opinion import second_opinion
 from pelvicnav.register.prior import MEASURED_POINTS, joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
@@ -146,9 +149,9 @@ def register(
     # a tracked frame's stage 1 searches nothing: it starts where the last frame settled
     settled = not searching or _settled(run, (start, s1), tried)
     result = _judged(run, attempt, settled)
-    if result.converged or guessed or not rescue:
-        return result
-    return _rescue(run, init, (start, s1), attempt, result, settled)
+    if not (result.converged or guessed or not rescue):
+        result = _rescue(run, init, (start, s1), attempt, result, settled)
+    return _second_opinion(run, result)
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,6 +166,8 @@ class _Run:
     progress: ProgressFn
     dislocated: str | None
     t_start: float
+    # bone -> every answer the re-searches of every attempt gave it or replaced ((4, 4) each)
+    found: dict[str, list[NDArray[np.float64]]] = field(default_factory=dict)
 
     def body(self, init: dict):
         return stage1_body(self.renderer, self.cfg.stage1.body, init, self.dislocated)
@@ -196,6 +201,8 @@ def _attempt(run: _Run, init: dict, s1) -> _Attempt:
                      run.dislocated)  # fmt: skip
         poses, disagreement, warnings, doubts = s2.poses, s2.disagreement, s2.warnings, s2.doubts
         stages.append(s2.result)
+        for b, found in s2.found.items():
+            run.found.setdefault(b, []).extend(found)
         intact = _intact_warnings(run, poses, views, levels[-1])
         warnings, implausible = [*warnings, *intact], [*s2.implausible, *intact]
     return _Attempt(views, levels[-1], poses, stages, warnings, disagreement, run.body(init).name,
@@ -408,6 +415,34 @@ def _rescue(run: _Run, init: dict, answer: tuple, first: _Attempt, result: Multi
     return _doubts_stand(run, result, again)
 
 
+def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
+    """``result``, settled when it was flagged only by questions about the dislocated bone's
+    answer and gradient NCC at the finest level prefers that answer to every other one the
+    searches found far from it (:mod:`~pelvicnav.register.opinion`,
+    ``RegistrationSettings.second_opinion``); still flagged, the other answer named, when one of
+    them scores higher. The poses are never changed. With one view (whose flag reads the
+    detector distance) or no plan, ``result`` as it is."""
+    margin, bone = run.cfg.second_opinion, run.dislocated
+    if (margin is None or bone is None or len(run.views) < 2 or result.converged
+            or result.implausible or not result.questions):  # fmt: skip
+        return result
+    far = run.cfg.research.retry_mm
+    op = second_opinion(run.levels[-1], run.renderer, run.views, result.poses, bone,
+                        run.found.get(bone, []), far)  # fmt: skip
+    if op.compared == 0:
+        return result
+    if op.lead > margin:
+        note = (f"settled by a second opinion: at the finest level, gradient correlation prefers "
+                f"this {bone} to each of the {op.compared} other answers the searches found "
+                f"more than {far:g} mm away, by {op.lead:.3f} at least (the questions below "
+                "read gradient orientation)")  # fmt: skip
+        return replace(result, converged=True, warnings=(note, *result.warnings))
+    note = (f"second opinion: at the finest level, gradient correlation prefers another answer "
+            f"the searches found for {bone}, {op.rival_mm:.1f} mm / {op.rival_deg:.1f} deg away, "
+            f"by {-op.lead:.3f}: the answer is likely wrong there")  # fmt: skip
+    return replace(result, warnings=(*result.warnings, note))
+
+
 def _rescued_note(first: MultiBodyResult) -> str:
     """The warning that opens a rescued result."""
     return (f"rescued: the first attempt was flagged (similarity {first.similarity:.3f}); "
@@ -426,7 +461,11 @@ def _doubts_stand(run: _Run, first: MultiBodyResult, again: MultiBodyResult) -> 
             f"first attempt) and a similarity less than {run.cfg.stage1.rescue_margin:g} better: "
             "the first attempt's doubts stand")  # fmt: skip
     said = tuple(f"first attempt: {w}" for w in first.warnings)
-    return replace(again, converged=False, warnings=(same, *said, *again.warnings))
+    questioned = first.questions and not first.implausible
+    questions = (same, *said, *again.questions) if questioned and (
+        again.converged or again.questions) else ()  # fmt: skip
+    return replace(again, converged=False, warnings=(same, *said, *again.warnings),
+                   questions=questions)  # fmt: skip
 
 
 def _found_again(run: _Run, first: tuple, tried: list[tuple]) -> bool:
@@ -578,6 +617,7 @@ class _Stage2Outcome:
     result: StageResult
     doubts: list[str]
     implausible: list[str]  # of the warnings: the dislocated bone's joints no dislocation gives
+    found: dict[str, list[NDArray[np.float64]]]  # the re-search's (ResearchOutcome.found)
 
 
 def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> _Stage2Outcome:
@@ -603,7 +643,7 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
     again = research(problem, y, views, seed, count if problem.searched else 0)
     result = StageResult("stage 2", runs, time.perf_counter() - t0, problem.final_runs, again.runs)
     return _Stage2Outcome(problem.blocks.as_dict(again.y), again.disagreement, again.warnings,
-                          result, again.doubts, again.implausible)  # fmt: skip
+                          result, again.doubts, again.implausible, again.found)  # fmt: skip
 
 
 def _attainable(metric: str, drrs: NDArray, n_views: int) -> float:
@@ -642,6 +682,7 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
             later = "" if s is stages[-1] else f" ({stages[-1].name} refined from there)"
             warnings.append(f"{s.name}: a search hit its generation limit while still improving"
                             + later)  # fmt: skip
+    faulted = not converged  # flagged by more than questions
     if ambiguous:
         converged = False
         warnings.extend(ambiguous)
@@ -650,11 +691,11 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
     attainable = _attainable(metric, drrs[0], len(views))
     floor = per_view * attainable
     if similarity < floor:
-        converged = False
+        converged, faulted = False, True
         warnings.append(f"final similarity {similarity:.3f} is below {floor:.3f} "
                         f"({per_view} per view)")  # fmt: skip
     elif _unsettled(settled, metric, similarity, attainable, len(views), cfg):
-        converged = False
+        converged, faulted = False, True
         warnings.append(f"stage 1 did not settle and the final similarity {similarity:.3f} is "
                         f"below {cfg.unsettled_similarity * attainable:.3f} "
                         f"({cfg.unsettled_similarity} per view): the bones may be misplaced "
@@ -669,4 +710,5 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
         stage1_bone=body,
         warnings=tuple(warnings),
         restart_disagreement=disagreement,
+        questions=() if faulted else tuple(ambiguous),
     )

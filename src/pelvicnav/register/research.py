@@ -57,6 +57,14 @@ class ResearchOutcome:
     warnings: list[str] = field(default_factory=list)
     doubts: list[str] = field(default_factory=list)  # ambiguities whose other answer is implausible
     implausible: list[str] = field(default_factory=list)  # the kept answer's joints: no dislocation
+    # bone -> every answer the searches gave it and every answer they replaced ((4, 4) each):
+    # what a second opinion compares the kept one with (multibody._second_opinion)
+    found: dict[str, list[NDArray[np.float64]]] = field(default_factory=dict)
+
+    def note(self, problem: Stage2Problem, i: int, *xs: NDArray) -> None:
+        """Record bone ``i``'s answers at the parameters ``xs`` (6 each) in ``found``."""
+        poses = problem.blocks.bone_poses(i, np.stack(xs))
+        self.found.setdefault(problem.blocks.bones[i], []).extend(poses)
 
 
 def _search_from_stage1(
@@ -376,6 +384,7 @@ def _fine_verdict(problem: Stage2Problem, i: int, r: int, seed: int, views: View
     """A fine-level search's answer ``res`` for bone ``i`` against the kept one (scoring
     ``f_now``): better by ``confirm_margin`` replaces it, with a warning; a ``check`` (of a bone
     not in question) that ends more than ``retry_mm`` away and is better by less, a warning."""
+    out.note(problem, i, res.x)
     if res.f >= f_now:
         return
     rs = problem.settings.research
@@ -434,6 +443,7 @@ def _judge(problem: Stage2Problem, i: int, x_alt: NDArray, runs: list[CMAESResul
     rs = problem.settings.research
     bone = problem.blocks.bones[i]
     out.runs.extend(runs)
+    out.note(problem, i, out.y[6 * i : 6 * i + 6], x_alt)
     f_now, d_mm, d_deg = _compare(problem, i, out.y, x_alt, views)
     out.disagreement[bone] = max(out.disagreement.get(bone, 0.0), d_mm)
     apart = d_mm > rs.ambiguity[0] or d_deg > rs.ambiguity[1]

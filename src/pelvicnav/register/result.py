@@ -75,6 +75,14 @@ class MultiBodyResult:
         sessions 21-28 (838 registrations, simulated and real CTs), 28 registrations with an
         error over 4 mm and 50 fine ones were flagged; 25 of the former and 1 of the latter had
         such a warning.
+    questions : tuple of str
+        Of the warnings, those that question the dislocated bone's answer (two answers the
+        images score alike, an answer found once, a fine-level search that disagrees, a rescue
+        that kept the pelvis) when they are all that flagged the registration; empty when
+        something else flagged it too (a search still improving at its limit, a weak final
+        similarity, an unsettled stage 1). A second opinion may settle such a result
+        (``RegistrationSettings.second_opinion``): it is then converged, its first warning
+        says so, and these stay listed.
     """
 
     poses: dict[str, NDArray[np.float64]]
@@ -87,6 +95,7 @@ class MultiBodyResult:
     warnings: tuple[str, ...] = ()
     restart_disagreement: dict[str, float] = field(default_factory=dict)
     implausible: tuple[str, ...] = ()
+    questions: tuple[str, ...] = ()
 
     @property
     def verdict(self) -> str:
@@ -106,6 +115,7 @@ class MultiBodyResult:
             "verdict": self.verdict,
             "warnings": list(self.warnings),
             "implausible": list(self.implausible),
+            "questions": list(self.questions),
             "stage1_bone": self.stage1_bone,
             "restart_disagreement_mm": dict(self.restart_disagreement),
             "seconds": self.seconds,

@@ -627,6 +627,18 @@ class RegistrationSettings:
         registrations moved a kept bone 5.9-12.6 mm / 2.3-8.0 deg (167/30 caught by this alone),
         the good ones at most 2.5 mm / 3.4 deg (seed 149 case 35, its kept hip 1.7 mm / 2.3 deg
         off: flagged under (3, 3)). None switches it off.
+    second_opinion : float or None
+        With a plan and two or more views, a registration flagged only because its dislocated
+        bone's answer is in question (``MultiBodyResult.questions``: two answers the images
+        score alike, an answer found once, a fine-level search that disagrees, a rescue that
+        kept the pelvis) is settled when, at the finest level, gradient NCC (summed over the
+        views) scores its answer higher by more than this than every other answer the searches
+        gave the bone more than ``research.retry_mm`` away (:mod:`~pelvicnav.register.opinion`);
+        the flag stands, with the other answer named, when one scores higher, or when there is
+        none to compare. The poses are never changed. Default 0.0 (session 30): on the 17
+        registrations flagged only as in question on seeds 311 and 347-367, the 14 fine ones
+        led every other answer by 0.0045-0.12 and the 3 gross ones trailed one by 0.016-0.052.
+        None switches it off.
     """
 
     pyramid: PyramidSettings = field(default_factory=PyramidSettings)
@@ -640,6 +652,7 @@ class RegistrationSettings:
     unsettled_lead: float = 0.05
     lone_run_settles: bool = True
     intact_limits: tuple[float, float] | None = (5.0, 5.0)
+    second_opinion: float | None = 0.0
 
     def __post_init__(self) -> None:
         if not (

@@ -12,7 +12,10 @@ registration (``case_id``):
 * where the rows say which results' joints no dislocation gives (``implausible``, see
   :class:`~pelvicnav.register.result.MultiBodyResult`): ``implausible``, such registrations, and
   ``implausible_gross``, those of them with an error over the limit. Such a flag says "likely
-  wrong"; the others, "in question".
+  wrong"; the others, "in question";
+* where the rows say which results a second opinion settled (``settled``, see
+  :func:`~pelvicnav.register.multibody._second_opinion`): ``settled``, such registrations (not
+  flagged), and ``settled_gross``, those of them with an error over the limit.
 
 Issue 13's goals: every gross error flagged, at most 10 % of flagged registrations fine.
 """
@@ -43,7 +46,7 @@ def flag_counts(
     cases: dict[str, list[dict]] = {}
     for r in rows:
         cases.setdefault(str(r[case_key]), []).append(r)
-    gross, flagged, implausible = set(), set(), set()
+    gross, flagged, implausible, settled = set(), set(), set(), set()
     for cid, sel in cases.items():
         errors = np.array([float(r[k]) for r in sel for k in keys], dtype=float)
         if np.any(~np.isfinite(errors)) or np.any(errors > limit_mm):
@@ -52,10 +55,14 @@ def flag_counts(
             flagged.add(cid)
         if any(_true(r.get("implausible", False)) for r in sel):
             implausible.add(cid)
+        if any(_true(r.get("settled", False)) for r in sel):
+            settled.add(cid)
     out = {"registrations": len(cases), "gross": len(gross), "gross_flagged": len(gross & flagged),
            "flagged": len(flagged), "flagged_fine": len(flagged - gross)}  # fmt: skip
     if any("implausible" in r for r in rows):
         out |= {"implausible": len(implausible), "implausible_gross": len(implausible & gross)}
+    if any("settled" in r for r in rows):
+        out |= {"settled": len(settled), "settled_gross": len(settled & gross)}
     return out
 
 
@@ -69,6 +76,9 @@ def flag_line(counts: dict[str, int], limit_mm: float = LIMIT_MM) -> str:
         line += (f" {c['implausible']} flagged as implausible (joints no dislocation gives: "
                  f"likely wrong), {c['implausible_gross']} of them with an error over "
                  f"{limit_mm:g} mm.")  # fmt: skip
+    if "settled" in c:
+        line += (f" {c['settled']} in question settled by the second opinion (not flagged), "
+                 f"{c['settled_gross']} of them with an error over {limit_mm:g} mm.")  # fmt: skip
     return line
 
 

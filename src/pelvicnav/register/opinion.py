@@ -1,0 +1,106 @@
+"""A second opinion on an answer the re-searches left in question.
+
+The flag's questions (two answers within ``ambiguity_score``, an answer found once, a fine-level
+search that disagrees, a rescue that kept the pelvis: :mod:`~pelvicnav.register.research`,
+:func:`~pelvicnav.register.multibody._rescue`) read the search's own similarity, gradient
+orientation (GO) at the finest level. Where a dislocated hip is half outside the views, GO scores
+its answer and a rival 5-40 mm away within 0.01, and the questions are raised whichever is right:
+on the fresh seeds of sessions 27-29, 33 of 52 flagged registrations were fine.
+
+The second opinion scores the kept answer and every other answer the searches gave the bone more
+than ``far_mm`` from it with another similarity at the same level: gradient NCC
+(:class:`~pelvicnav.metrics.similarity.GradientNCC`), which weighs each edge by its strength where
+GO counts its direction only (the others at their final poses, the same DRRs and radiographs).
+Measured on the 17 two-view registrations flagged only as in question on seeds 311 and 347-367
+(scored afterwards, kept and other answers as the searches left them): in the 14 fine ones, every
+other answer scored below the kept one by 0.0045-0.12 (summed over both views); in the 3 gross
+ones (hips 6.3-20.5 mm off) an other answer scored above it by 0.016-0.052. GO at the same level
+put an other answer above the kept one in 2 of the fine ones too (by 0.007 and 0.011).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pelvicnav.drr.renderer import Renderer
+from pelvicnav.io.views import ViewSet
+from pelvicnav.metrics.errors import pose_disagreement
+from pelvicnav.metrics.similarity import GradientNCC
+from pelvicnav.register.pyramid import Level
+
+__all__ = ["SecondOpinion", "second_opinion"]
+
+
+@dataclass(frozen=True)
+class SecondOpinion:
+    """The kept answer of ``bone`` against the other answers found far from it.
+
+    Attributes
+    ----------
+    bone : str
+    compared : int
+        Other answers more than ``far_mm`` from the kept one.
+    lead : float
+        The kept answer's gradient NCC (summed over the views) minus the best other answer's;
+        NaN when none was compared.
+    rival_mm, rival_deg : float
+        How far the best other answer is from the kept one (mm at the bone's centroid, degrees);
+        NaN when none was compared.
+    """
+
+    bone: str
+    compared: int
+    lead: float
+    rival_mm: float
+    rival_deg: float
+
+
+def second_opinion(
+    level: Level,
+    renderer: Renderer,
+    views: ViewSet,
+    poses: dict[str, NDArray],
+    bone: str,
+    found: Sequence[NDArray],
+    far_mm: float,
+) -> SecondOpinion:
+    """Gradient NCC at ``level`` of ``bone`` at its kept pose and at each pose of ``found``
+    further than ``far_mm`` from it (:func:`~pelvicnav.metrics.errors.pose_disagreement`), every
+    other bone at ``poses``.
+
+    Parameters
+    ----------
+    level : Level
+        The finest level (its radiographs and projections, ``views``' geometry).
+    renderer : Renderer
+    views : ViewSet
+        The final geometry (for the distances).
+    poses : dict bone -> (4, 4)
+        The answer, ``world_from_ct``.
+    bone : str
+    found : sequence of (4, 4)
+        Other answers for ``bone`` (``world_from_ct``).
+    far_mm : float
+    """
+    kept = poses[bone]
+    points, centre = renderer.points(bone, level.index), renderer.centroid(bone, level.index)
+    far, apart = [], []
+    for T in found:
+        mm, deg = pose_disagreement(kept, T, points, centre, views.projections,
+                                    views.pixel_spacing)  # fmt: skip
+        if mm > far_mm:
+            far.append(T)
+            apart.append((mm, deg))
+    if not far:
+        return SecondOpinion(bone, 0, float("nan"), float("nan"), float("nan"))
+    bones = renderer.bones
+    stack = np.stack([[T if b == bone else poses[b] for b in bones] for T in (kept, *far)])
+    drrs = renderer.render(level.index, bones, stack, level.projections, level.shape)
+    score = sum(GradientNCC(img)(drrs[:, k]) for k, img in enumerate(level.images))
+    lead = score[0] - score[1:]
+    k = int(np.argmin(lead))
+    return SecondOpinion(bone, len(far), float(lead[k]), *apart[k])

@@ -1,0 +1,152 @@
+"""The second opinion on an answer in question: gradient NCC of the kept answer against the
+other answers the searches found, and what the registration's verdict does with it."""
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pelvicnav.geometry import transforms as tf
+from pelvicnav.register import multibody as mb
+from pelvicnav.register.opinion import SecondOpinion, second_opinion
+from pelvicnav.register.result import MultiBodyResult
+from pelvicnav.register.settings import RegistrationSettings
+
+
+def _shifted(T, mm):
+    return tf.from_params(list(mm), [0.0, 0.0, 0.0]) @ T
+
+
+def _views(levels):
+    fine = levels[-1]
+    # the fixture's views at full resolution: the distances only need the projections' count
+    return SimpleNamespace(projections=tuple(fine.projections), pixel_spacing=((1, 1),) * 2)
+
+
+def test_the_true_pose_leads_every_far_answer(two_bodies):
+    renderer, levels, truth = two_bodies
+    far = [_shifted(truth["a"], (9.0, 0.0, 0.0)), _shifted(truth["a"], (0.0, -6.0, 4.0))]
+    near = [_shifted(truth["a"], (1.5, 0.0, 0.0))]  # within far_mm: not compared
+    op = second_opinion(levels[-1], renderer, _views(levels), truth, "a", far + near, 4.0)
+    assert op.compared == 2
+    assert op.lead > 0.02
+    # the lead is over the best of them, and names it
+    each = [second_opinion(levels[-1], renderer, _views(levels), truth, "a", [T], 4.0)
+            for T in far]  # fmt: skip
+    best = min(each, key=lambda o: o.lead)
+    assert (op.lead, op.rival_mm) == pytest.approx((best.lead, best.rival_mm))
+
+
+def test_a_wrong_answer_trails_the_truth_found_elsewhere(two_bodies):
+    renderer, levels, truth = two_bodies
+    wrong = {**truth, "a": _shifted(truth["a"], (8.0, 3.0, 0.0))}
+    op = second_opinion(levels[-1], renderer, _views(levels), wrong, "a", [truth["a"]], 4.0)
+    assert op.compared == 1
+    assert op.lead < -0.02
+    assert op.rival_mm == pytest.approx(np.hypot(8.0, 3.0), abs=1e-6)
+
+
+def test_nothing_far_is_nothing_compared(two_bodies):
+    renderer, levels, truth = two_bodies
+    op = second_opinion(levels[-1], renderer, _views(levels), truth, "a",
+                        [_shifted(truth["a"], (2.0, 0.0, 0.0))], 4.0)  # fmt: skip
+    assert op.compared == 0 and np.isnan(op.lead)
+
+
+# --- the verdict -------------------------------------------------------------------------
+
+
+def _result(**kw):
+    base = {
+        "poses": {"left_hip": np.eye(4)},
+        "projections": (np.eye(3, 4),) * 2,
+        "similarity": 0.9,
+        "converged": False,
+        "warnings": ("two searches for left_hip ... the images do not pin its pose down",),
+        "questions": ("two searches for left_hip ... the images do not pin its pose down",),
+    }
+    return MultiBodyResult(**{**base, **kw})  # fmt: skip
+
+
+def _run(cfg=None, n_views=2, dislocated="left_hip"):
+    return SimpleNamespace(cfg=cfg or RegistrationSettings(), dislocated=dislocated,
+                           views=[None] * n_views, levels=[None], renderer=None,
+                           found={"left_hip": [np.eye(4)]})  # fmt: skip
+
+
+@pytest.fixture
+def opinion(monkeypatch):
+    """Replace the second opinion by a canned one; records its calls."""
+    calls = []
+
+    def give(lead, compared=3):
+        def fake(level, renderer, views, poses, bone, found, far_mm):
+            calls.append((bone, len(found), far_mm))
+            return SecondOpinion(bone, compared, lead, 12.0, 5.0)
+
+        monkeypatch.setattr(mb, "second_opinion", fake)
+        return calls
+
+    return give
+
+
+def test_a_lead_settles_a_result_in_question(opinion):
+    calls = opinion(0.03)
+    result = _result()
+    out = mb._second_opinion(_run(), result)
+    assert out.converged and out.verdict == "converged"
+    assert out.poses is result.poses  # the poses are never changed
+    assert out.warnings[0].startswith("settled by a second opinion")
+    assert out.warnings[1:] == _result().warnings and out.questions == _result().questions
+    assert calls == [("left_hip", 1, RegistrationSettings().research.retry_mm)]
+
+
+def test_a_better_other_answer_keeps_the_flag_and_says_where(opinion):
+    opinion(-0.02)
+    out = mb._second_opinion(_run(), _result())
+    assert not out.converged and out.verdict == "in question"
+    assert "12.0 mm / 5.0 deg away, by 0.020" in out.warnings[-1]
+
+
+def test_a_tie_at_the_margin_keeps_the_flag(opinion):
+    opinion(0.0)
+    assert not mb._second_opinion(_run(), _result()).converged
+    opinion(0.004)
+    cfg = replace(RegistrationSettings(), second_opinion=0.005)
+    assert not mb._second_opinion(_run(cfg), _result()).converged
+
+
+def test_nothing_to_compare_keeps_the_flag(opinion):
+    opinion(float("nan"), compared=0)
+    result = _result()
+    assert mb._second_opinion(_run(), result) is result
+
+
+@pytest.mark.parametrize("case", ["converged", "implausible", "faulted", "one view", "no plan",
+                                  "off"])  # fmt: skip
+def test_only_a_result_flagged_by_questions_alone_is_reconsidered(opinion, case):
+    calls = opinion(0.5)
+    result = {"converged": _result(converged=True, questions=()),
+              "implausible": _result(implausible=("left_hip ends with ...",)),
+              "faulted": _result(questions=())}.get(case, _result())  # fmt: skip
+    run = {
+        "one view": _run(n_views=1),
+        "no plan": _run(dislocated=None),
+        "off": _run(replace(RegistrationSettings(), second_opinion=None)),
+    }.get(case, _run())
+    assert mb._second_opinion(run, result) is result
+    assert calls == []
+
+
+def test_doubts_that_stand_are_questions_only_when_both_attempts_were_questioned():
+    bones = SimpleNamespace(bones=("sacrum", "left_hip", "right_hip"))
+    run = SimpleNamespace(cfg=RegistrationSettings(), dislocated="left_hip", renderer=bones)
+    first = _result(similarity=0.90)
+    clean = _result(similarity=0.91, converged=True, warnings=(), questions=())
+    out = mb._doubts_stand(run, first, clean)
+    assert not out.converged and out.questions == out.warnings
+    faulted = _result(similarity=0.91, warnings=("final similarity ...",), questions=())
+    assert mb._doubts_stand(run, first, faulted).questions == ()
+    likely_wrong = replace(first, implausible=("left_hip ends with ...",))
+    assert mb._doubts_stand(run, likely_wrong, clean).questions == ()
