@@ -18,10 +18,14 @@ def _shifted(T, mm):
     return tf.from_params(list(mm), [0.0, 0.0, 0.0]) @ T
 
 
+class _Views(SimpleNamespace):
+    def __len__(self):
+        return len(self.projections)
+
+
 def _views(levels):
-    fine = levels[-1]
-    # the fixture's views at full resolution: the distances only need the projections' count
-    return SimpleNamespace(projections=tuple(fine.projections), pixel_spacing=((1, 1),) * 2)
+    """The fixture's two views as far as the distances and the verdict read them."""
+    return _Views(projections=tuple(levels[-1].projections), pixel_spacing=((1, 1),) * 2)
 
 
 def test_the_true_pose_leads_every_far_answer(two_bodies):
@@ -150,3 +154,57 @@ def test_doubts_that_stand_are_questions_only_when_both_attempts_were_questioned
     assert mb._doubts_stand(run, first, faulted).questions == ()
     likely_wrong = replace(first, implausible=("left_hip ends with ...",))
     assert mb._doubts_stand(run, likely_wrong, clean).questions == ()
+
+
+# --- a pelvis stage 2 pushed to the edge of its box --------------------------------------
+
+
+def _problem(dislocated="left_hip"):
+    from pelvicnav.register.stage2 import Stage2Problem
+
+    blocks = SimpleNamespace(bones=("sacrum", "left_hip", "right_hip"))
+    problem = SimpleNamespace(blocks=blocks, dislocated=dislocated,
+                              settings=RegistrationSettings())  # fmt: skip
+    problem.box = lambda i: Stage2Problem.box(problem, i)
+    return problem
+
+
+def test_a_pelvis_bone_at_the_edge_of_its_box_is_a_fault():
+    t, r = RegistrationSettings().stage2.range_attached
+    y = np.zeros(18)
+    assert mb._edges(_problem(), y) == []
+    y[6:12] = [20.0, 0, 0, 11.0, 0, 0]  # the dislocated bone: its own, wider box
+    y[3 + 0] = 0.9 * r  # the sacrum's first rotation, inside
+    y[12 + 1] = -0.5 * t  # the right hip's y shift, inside
+    assert mb._edges(_problem(), y) == []
+    y[5] = -r  # the sacrum's third rotation at the bound
+    y[12] = t  # the right hip's x shift at the bound
+    faults = mb._edges(_problem(), y)
+    assert [f.split()[3] for f in faults] == ["sacrum", "right_hip"]
+    assert all("stage 1 misplaced the pelvis" in f for f in faults)
+    assert mb._edges(_problem(dislocated=None), y) == []  # no plan: every bone has the full box
+
+
+def _judged(two_bodies, ambiguous=(), faults=()):
+    from pelvicnav.register.cmaes import CMAESResult
+    from pelvicnav.register.result import StageResult
+    from pelvicnav.register.settings import PyramidSettings
+
+    renderer, levels, truth = two_bodies
+    cma = CMAESResult(x=np.zeros(6), f=-1.0, evaluations=10, generations=5, converged=True,
+                      history=np.linspace(0.0, -1.0, 5), final_std=0.1)  # fmt: skip
+    cfg = RegistrationSettings(pyramid=PyramidSettings(metrics=("gncc", "gncc")))
+    views = _views(levels)
+    return mb._judge(views, levels[-1], renderer, truth, [StageResult("stage 2", [cma], 0.0)],
+                     list(ambiguous), {}, cfg, 0.0, "pelvis", True, list(faults))  # fmt: skip
+
+
+def test_questions_are_kept_only_when_nothing_else_flags(two_bodies):
+    clean = _judged(two_bodies)
+    assert clean.converged and clean.questions == ()
+    asked = _judged(two_bodies, ambiguous=["two searches ... do not pin its pose down"])
+    assert not asked.converged and asked.questions == asked.warnings
+    faulted = _judged(two_bodies, ambiguous=["two searches ... do not pin its pose down"],
+                      faults=["stage 2 moved b to the edge of its box ..."])  # fmt: skip
+    assert not faulted.converged and faulted.questions == ()
+    assert faulted.warnings[0].startswith("stage 2 moved b to the edge")

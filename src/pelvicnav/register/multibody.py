@@ -57,6 +57,8 @@ __all__ = ["register", "register_multibody"]
 
 ProgressFn = Callable[[str, int, int], None] | None
 
+EDGE = 0.99  # a stage-2 parameter this close to its box's bound (fraction) is at the edge
+
 
 def register_multibody(
     ct_hu: Volume,
@@ -186,6 +188,7 @@ class _Attempt:
     body: str
     doubts: list[str] = field(default_factory=list)  # ambiguities with an implausible other answer
     implausible: list[str] = field(default_factory=list)  # warnings: joints no answer can have
+    faults: list[str] = field(default_factory=list)  # stage 2's: a pelvis stage 1 misplaced
 
 
 def _attempt(run: _Run, init: dict, s1) -> _Attempt:
@@ -195,18 +198,19 @@ def _attempt(run: _Run, init: dict, s1) -> _Attempt:
         views = views.with_projections(s1.projections)
         levels = [lv.with_geometry(views.projections) for lv in levels]
     poses = {b: s1.delta @ init[b] for b in run.renderer.bones}  # they share the set-up error
-    stages, warnings, disagreement, doubts, implausible = [s1.result], [], {}, [], []
+    stages, warnings, disagreement, doubts, implausible, faults = [s1.result], [], {}, [], [], []
     if cfg.stage2.enabled:
         s2 = _stage2(views, levels, run.renderer, poses, cfg, run.seed, run.progress,
                      run.dislocated)  # fmt: skip
         poses, disagreement, warnings, doubts = s2.poses, s2.disagreement, s2.warnings, s2.doubts
+        faults = s2.faults
         stages.append(s2.result)
         for b, found in s2.found.items():
             run.found.setdefault(b, []).extend(found)
         intact = _intact_warnings(run, poses, views, levels[-1])
         warnings, implausible = [*warnings, *intact], [*s2.implausible, *intact]
     return _Attempt(views, levels[-1], poses, stages, warnings, disagreement, run.body(init).name,
-                    doubts, implausible)  # fmt: skip
+                    doubts, implausible, faults)  # fmt: skip
 
 
 def _intact_warnings(run: _Run, poses: dict, views: ViewSet, fine: Level) -> list[str]:
@@ -232,7 +236,7 @@ def _judged(run: _Run, a: _Attempt, settled: bool) -> MultiBodyResult:
     """The attempt judged (``settled``: see :func:`_settled`); its doubts flag it too, and its
     joints that no dislocation gives mark it ``implausible``."""
     result = _judge(a.views, a.fine, run.renderer, a.poses, a.stages, [*a.warnings, *a.doubts],
-                    a.disagreement, run.cfg, run.t_start, a.body, settled)  # fmt: skip
+                    a.disagreement, run.cfg, run.t_start, a.body, settled, a.faults)  # fmt: skip
     return replace(result, implausible=tuple(a.implausible))
 
 
@@ -618,6 +622,7 @@ class _Stage2Outcome:
     doubts: list[str]
     implausible: list[str]  # of the warnings: the dislocated bone's joints no dislocation gives
     found: dict[str, list[NDArray[np.float64]]]  # the re-search's (ResearchOutcome.found)
+    faults: list[str]  # the pelvis's bones at the edge of their box (_edges)
 
 
 def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> _Stage2Outcome:
@@ -642,8 +647,31 @@ def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> 
     count = cfg.research.count(len(views)) if cfg.stage2.mode != "joint" else 0
     again = research(problem, y, views, seed, count if problem.searched else 0)
     result = StageResult("stage 2", runs, time.perf_counter() - t0, problem.final_runs, again.runs)
+    faults = _edges(problem, again.y) if cfg.stage2.mode == "sweep" else []
     return _Stage2Outcome(problem.blocks.as_dict(again.y), again.disagreement, again.warnings,
-                          result, again.doubts, again.implausible, again.found)  # fmt: skip
+                          result, again.doubts, again.implausible, again.found,
+                          faults)  # fmt: skip
+
+
+def _edges(problem: Stage2Problem, y: NDArray) -> list[str]:
+    """With a plan, a warning for each bone stage 1 placed (the pelvis) whose stage-2 parameters
+    ``y`` reached the edge of its box (``Stage2Settings.range_attached``): the answer lies beyond
+    it, so stage 1 misplaced the pelvis and stage 2 could not bring it back. Seed 373 case 16: a
+    lone stage-1 run left the pelvis 11 mm off; stage 2 turned the sacrum and the right hip by
+    the box's 4 deg about two axes and stopped there, both bones 2.6-5.3 mm / 7 deg off, no
+    other rule raised; at the finest level the true pelvis scored 0.058 better in GO."""
+    if problem.dislocated is None:
+        return []
+    out = []
+    for i, bone in enumerate(problem.blocks.bones):
+        if bone == problem.dislocated:
+            continue
+        box = problem.box(i)
+        if np.any(np.abs(y[6 * i : 6 * i + 6]) >= EDGE * box):
+            out.append(f"stage 2 moved {bone} to the edge of its box ({box[0]:g} mm / "
+                       f"{box[3]:g} deg from where stage 1 put it): stage 1 misplaced the "
+                       "pelvis")  # fmt: skip
+    return out
 
 
 def _attainable(metric: str, drrs: NDArray, n_views: int) -> float:
@@ -668,9 +696,10 @@ def _unsettled(settled: bool, metric: str, similarity: float, attainable: float,
 
 
 def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement, cfg, t_start,
-           body, settled: bool) -> MultiBodyResult:  # fmt: skip
+           body, settled: bool, faults=()) -> MultiBodyResult:  # fmt: skip
     """The result with its similarity (all bones, finest level) and convergence flag
-    (``settled``: whether stage 1's answer stands, :func:`_settled`)."""
+    (``settled``: whether stage 1's answer stands, :func:`_settled`; ``faults``: stage 2's
+    warnings that flag it whatever else is said, :func:`_edges`)."""
     bones = renderer.bones
     stack = np.stack([poses[b] for b in bones])[None]
     drrs = renderer.render(fine.index, bones, stack, fine.projections, fine.shape)
@@ -682,7 +711,10 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
             later = "" if s is stages[-1] else f" ({stages[-1].name} refined from there)"
             warnings.append(f"{s.name}: a search hit its generation limit while still improving"
                             + later)  # fmt: skip
-    faulted = not converged  # flagged by more than questions
+    faulted = not converged or bool(faults)  # flagged by more than questions
+    if faults:
+        converged = False
+        warnings.extend(faults)
     if ambiguous:
         converged = False
         warnings.extend(ambiguous)
