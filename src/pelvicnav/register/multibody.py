@@ -202,6 +202,11 @@ def _attempt(run: _Run, init: dict, s1) -> _Attempt:
     if cfg.stage2.enabled:
         s2 = _stage2(views, levels, run.renderer, poses, cfg, run.seed, run.progress,
                      run.dislocated)  # fmt: skip
+        for _ in range(cfg.stage2.recentre):  # a pelvis at the edge of its box: once more
+            if not s2.faults:
+                break
+            s2 = _stage2(views, levels, run.renderer, s2.poses, cfg, run.seed, run.progress,
+                         run.dislocated)  # fmt: skip
         poses, disagreement, warnings, doubts = s2.poses, s2.disagreement, s2.warnings, s2.doubts
         faults = s2.faults
         stages.append(s2.result)

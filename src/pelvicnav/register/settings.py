@@ -264,6 +264,14 @@ class Stage2Settings:
     range_attached : (mm, deg)
         Box of the bones the plan says are not dislocated (they moved with the pelvis in stage 1,
         up to the few mm the dislocated bone biased it).
+    recentre : int
+        Sweep mode with a plan: when a bone of the pelvis ends at the edge of its
+        ``range_attached`` box (the answer lies beyond it: stage 1 misplaced the pelvis), stage 2
+        runs again from its answer, its boxes centred there, up to this many times; a bone
+        still at the edge flags the result (``multibody._edges``). Seed 373 case 16: a lone
+        stage-1 run left the pelvis 11 mm off and stage 2 stopped the sacrum and right hip at
+        the box's 4 deg, 2.6-5.3 mm / 7 deg off, unflagged; once more, 1.0-2.4 mm and still at
+        the edge; with 3 (the default, as stage 1's), 0.3-0.5 mm and converged.
     joint_prior : float
         Weight (per view) of the joint-aware prior's interpenetration term on the plan's
         dislocated bone: the fraction of its joint samples inside another bone is taken off the
@@ -300,6 +308,7 @@ class Stage2Settings:
     max_generations: tuple[int, ...] = (30, 20)
     search_range: tuple[float, float] = (25.0, 12.0)
     range_attached: tuple[float, float] = (8.0, 4.0)
+    recentre: int = 3
     joint_prior: float = 0.0
     joint_gap: tuple[float, float] = (0.0, 20.0)
     fine: str = "gradient"
