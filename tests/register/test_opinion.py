@@ -156,35 +156,6 @@ def test_doubts_that_stand_are_questions_only_when_both_attempts_were_questioned
     assert mb._doubts_stand(run, likely_wrong, clean).questions == ()
 
 
-# --- a pelvis stage 2 pushed to the edge of its box --------------------------------------
-
-
-def _problem(dislocated="left_hip"):
-    from pelvicnav.register.stage2 import Stage2Problem
-
-    blocks = SimpleNamespace(bones=("sacrum", "left_hip", "right_hip"))
-    problem = SimpleNamespace(blocks=blocks, dislocated=dislocated,
-                              settings=RegistrationSettings())  # fmt: skip
-    problem.box = lambda i: Stage2Problem.box(problem, i)
-    return problem
-
-
-def test_a_pelvis_bone_at_the_edge_of_its_box_is_a_fault():
-    t, r = RegistrationSettings().stage2.range_attached
-    y = np.zeros(18)
-    assert mb._edges(_problem(), y) == []
-    y[6:12] = [20.0, 0, 0, 11.0, 0, 0]  # the dislocated bone: its own, wider box
-    y[3 + 0] = 0.9 * r  # the sacrum's first rotation, inside
-    y[12 + 1] = -0.5 * t  # the right hip's y shift, inside
-    assert mb._edges(_problem(), y) == []
-    y[5] = -r  # the sacrum's third rotation at the bound
-    y[12] = t  # the right hip's x shift at the bound
-    faults = mb._edges(_problem(), y)
-    assert [f.split()[3] for f in faults] == ["sacrum", "right_hip"]
-    assert all("stage 1 misplaced the pelvis" in f for f in faults)
-    assert mb._edges(_problem(dislocated=None), y) == []  # no plan: every bone has the full box
-
-
 def _judged(two_bodies, ambiguous=(), faults=()):
     from pelvicnav.register.cmaes import CMAESResult
     from pelvicnav.register.result import StageResult
