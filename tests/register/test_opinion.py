@@ -34,12 +34,13 @@ def test_the_true_pose_leads_every_far_answer(two_bodies):
     near = [_shifted(truth["a"], (1.5, 0.0, 0.0))]  # within far_mm: not compared
     op = second_opinion(levels[-1], renderer, _views(levels), truth, "a", far + near, 4.0)
     assert op.compared == 2
-    assert op.lead > 0.02
+    assert op.lead > 0.02 and op.lead_level > 0.02
     # the lead is over the best of them, and names it
     each = [second_opinion(levels[-1], renderer, _views(levels), truth, "a", [T], 4.0)
             for T in far]  # fmt: skip
-    best = min(each, key=lambda o: o.lead)
-    assert (op.lead, op.rival_mm) == pytest.approx((best.lead, best.rival_mm))
+    best = min(each, key=lambda o: min(o.lead, o.lead_level))
+    assert (op.lead, op.rival_mm) == pytest.approx((min(o.lead for o in each), best.rival_mm))
+    assert op.lead_level == pytest.approx(min(o.lead_level for o in each))
 
 
 def test_a_wrong_answer_trails_the_truth_found_elsewhere(two_bodies):
@@ -47,7 +48,7 @@ def test_a_wrong_answer_trails_the_truth_found_elsewhere(two_bodies):
     wrong = {**truth, "a": _shifted(truth["a"], (8.0, 3.0, 0.0))}
     op = second_opinion(levels[-1], renderer, _views(levels), wrong, "a", [truth["a"]], 4.0)
     assert op.compared == 1
-    assert op.lead < -0.02
+    assert op.lead < -0.02 and op.lead_level < -0.02
     assert op.rival_mm == pytest.approx(np.hypot(8.0, 3.0), abs=1e-6)
 
 
@@ -55,7 +56,7 @@ def test_nothing_far_is_nothing_compared(two_bodies):
     renderer, levels, truth = two_bodies
     op = second_opinion(levels[-1], renderer, _views(levels), truth, "a",
                         [_shifted(truth["a"], (2.0, 0.0, 0.0))], 4.0)  # fmt: skip
-    assert op.compared == 0 and np.isnan(op.lead)
+    assert op.compared == 0 and np.isnan(op.lead) and np.isnan(op.lead_level)
 
 
 # --- the verdict -------------------------------------------------------------------------
@@ -84,10 +85,11 @@ def opinion(monkeypatch):
     """Replace the second opinion by a canned one; records its calls."""
     calls = []
 
-    def give(lead, compared=3):
+    def give(lead, compared=3, lead_level=None):
         def fake(level, renderer, views, poses, bone, found, far_mm):
             calls.append((bone, len(found), far_mm))
-            return SecondOpinion(bone, compared, lead, 12.0, 5.0)
+            own = lead if lead_level is None else lead_level
+            return SecondOpinion(bone, compared, lead, own, 12.0, 5.0)
 
         monkeypatch.setattr(mb, "second_opinion", fake)
         return calls
@@ -110,7 +112,19 @@ def test_a_better_other_answer_keeps_the_flag_and_says_where(opinion):
     opinion(-0.02)
     out = mb._second_opinion(_run(), _result())
     assert not out.converged and out.verdict == "in question"
-    assert "12.0 mm / 5.0 deg away, by 0.020" in out.warnings[-1]
+    assert "12.0 mm / 5.0 deg away" in out.warnings[-1]
+    assert "in gradient correlation and the searches' own similarity" in out.warnings[-1]
+
+
+def test_both_similarities_must_prefer_the_answer(opinion):
+    # seed 389 case 4: a hip 13.6 mm off led the others found in gradient NCC (0.021), but GO
+    # at the finest level put one of them 0.015 above it; the truth was never found
+    opinion(0.021, lead_level=-0.015)
+    out = mb._second_opinion(_run(), _result())
+    assert not out.converged
+    assert out.warnings[-1].endswith("in the searches' own similarity")
+    opinion(-0.01, lead_level=0.02)
+    assert mb._second_opinion(_run(), _result()).warnings[-1].endswith("gradient correlation")
 
 
 def test_a_tie_at_the_margin_keeps_the_flag(opinion):

@@ -426,11 +426,12 @@ def _rescue(run: _Run, init: dict, answer: tuple, first: _Attempt, result: Multi
 
 def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
     """``result``, settled when it was flagged only by questions about the dislocated bone's
-    answer and gradient NCC at the finest level prefers that answer to every other one the
-    searches found far from it (:mod:`~pelvicnav.register.opinion`,
-    ``RegistrationSettings.second_opinion``); still flagged, the other answer named, when one of
-    them scores higher. The poses are never changed. With one view (whose flag reads the
-    detector distance) or no plan, ``result`` as it is."""
+    answer and, at the finest level, that answer scores above every other one the searches found
+    far from it in gradient NCC and in the level's own similarity (GO) alike
+    (:mod:`~pelvicnav.register.opinion`, ``RegistrationSettings.second_opinion``); still
+    flagged, the other answer named, when one of them scores as well or better in either. The
+    poses are never changed. With one view (whose flag reads the detector distance) or no plan,
+    ``result`` as it is."""
     margin, bone = run.cfg.second_opinion, run.dislocated
     if (margin is None or bone is None or len(run.views) < 2 or result.converged
             or result.implausible or not result.questions):  # fmt: skip
@@ -440,15 +441,18 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
                         run.found.get(bone, []), far)  # fmt: skip
     if op.compared == 0:
         return result
-    if op.lead > margin:
-        note = (f"settled by a second opinion: at the finest level, gradient correlation prefers "
-                f"this {bone} to each of the {op.compared} other answers the searches found "
-                f"more than {far:g} mm away, by {op.lead:.3f} at least (the questions below "
-                "read gradient orientation)")  # fmt: skip
+    if min(op.lead, op.lead_level) > margin:
+        note = (f"settled by a second opinion: at the finest level, this {bone} scores above each "
+                f"of the {op.compared} other answers the searches found more than {far:g} mm "
+                f"away, by {op.lead:.3f} at least in gradient correlation and {op.lead_level:.3f} "
+                "in the searches' own similarity")  # fmt: skip
         return replace(result, converged=True, warnings=(note, *result.warnings))
-    note = (f"second opinion: at the finest level, gradient correlation prefers another answer "
-            f"the searches found for {bone}, {op.rival_mm:.1f} mm / {op.rival_deg:.1f} deg away, "
-            f"by {-op.lead:.3f}: the answer is likely wrong there")  # fmt: skip
+    which = " and ".join(name for name, lead in (("gradient correlation", op.lead),
+                                                 ("the searches' own similarity", op.lead_level))
+                         if lead <= margin)  # fmt: skip
+    note = (f"second opinion: another answer the searches found for {bone}, "
+            f"{op.rival_mm:.1f} mm / {op.rival_deg:.1f} deg away, scores as well or better at the "
+            f"finest level in {which}")  # fmt: skip
     return replace(result, warnings=(*result.warnings, note))
 
 

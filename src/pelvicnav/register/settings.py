@@ -640,14 +640,14 @@ class RegistrationSettings:
         With a plan and two or more views, a registration flagged only because its dislocated
         bone's answer is in question (``MultiBodyResult.questions``: two answers the images
         score alike, an answer found once, a fine-level search that disagrees, a rescue that
-        kept the pelvis) is settled when, at the finest level, gradient NCC (summed over the
-        views) scores its answer higher by more than this than every other answer the searches
-        gave the bone more than ``research.retry_mm`` away (:mod:`~pelvicnav.register.opinion`);
-        the flag stands, with the other answer named, when one scores higher, or when there is
-        none to compare. The poses are never changed. Default 0.0 (session 30): on the 17
-        registrations flagged only as in question on seeds 311 and 347-367, the 14 fine ones
-        led every other answer by 0.0045-0.12 and the 3 gross ones trailed one by 0.016-0.052.
-        None switches it off.
+        kept the pelvis) is settled when, at the finest level, its answer scores higher by more
+        than this than every other answer the searches gave the bone more than
+        ``research.retry_mm`` away, in gradient NCC and in GO (each summed over the views;
+        :mod:`~pelvicnav.register.opinion`); the flag stands, with the other answer named, when
+        one scores as well or better in either, or when there is none to compare. The poses are
+        never changed. Default 0.0 (session 30): on the 17 registrations flagged only as in
+        question on seeds 311 and 347-367 it settles 12 of the 14 fine ones and none of the 3
+        gross ones. None switches it off.
     """
 
     pyramid: PyramidSettings = field(default_factory=PyramidSettings)
