@@ -37,7 +37,7 @@ def test_a_pelvis_bone_at_the_edge_of_its_box_is_a_fault():
 
 def _outcome(tag, faults):
     return SimpleNamespace(poses={"sacrum": tag}, disagreement={}, warnings=[], doubts=[],
-                           implausible=[], found={}, faults=list(faults),
+                           implausible=[], found={"left_hip": [tag]}, faults=list(faults),
                            result=SimpleNamespace(name=f"stage 2 ({tag})"))  # fmt: skip
 
 
@@ -56,21 +56,23 @@ def _attempt_with(monkeypatch, outcomes, recentre=3):
                           cfg=cfg, seed=0, progress=None, dislocated="left_hip", found={},
                           body=lambda init: SimpleNamespace(name="pelvis"))  # fmt: skip
     s1 = SimpleNamespace(projections=None, delta=np.eye(4), result="stage 1")
-    return mb._attempt(run, {"sacrum": np.eye(4)}, s1), calls
+    a = mb._attempt(run, {"sacrum": np.eye(4)}, s1)
+    return a, calls, run.found.get("left_hip")
 
 
 def test_a_pelvis_at_the_edge_gets_stage_2_again_from_its_answer(monkeypatch):
     edge = ["stage 2 moved sacrum to the edge of its box ..."]
-    a, calls = _attempt_with(monkeypatch, [_outcome(1, edge), _outcome(2, edge), _outcome(3, [])])
+    a, calls, found = _attempt_with(monkeypatch, [_outcome(1, edge), _outcome(2, edge), _outcome(3, [])])
     assert len(calls) == 3 and calls[1] == {"sacrum": 1} and calls[2] == {"sacrum": 2}
     assert a.poses == {"sacrum": 3} and a.faults == []
-    a, calls = _attempt_with(monkeypatch, [_outcome(1, [])])
+    assert found == [1, 2, 3]  # every run's other answers, for the second opinion
+    a, calls, found = _attempt_with(monkeypatch, [_outcome(1, [])])
     assert len(calls) == 1 and a.poses == {"sacrum": 1}
 
 
 def test_a_pelvis_still_at_the_edge_after_the_last_try_keeps_its_fault(monkeypatch):
     edge = ["stage 2 moved sacrum to the edge of its box ..."]
-    a, calls = _attempt_with(monkeypatch, [_outcome(k, edge) for k in range(3)], recentre=2)
+    a, calls, found = _attempt_with(monkeypatch, [_outcome(k, edge) for k in range(3)], recentre=2)
     assert len(calls) == 3 and a.faults == edge and a.poses == {"sacrum": 2}
-    a, calls = _attempt_with(monkeypatch, [_outcome(0, edge)], recentre=0)
+    a, calls, found = _attempt_with(monkeypatch, [_outcome(0, edge)], recentre=0)
     assert len(calls) == 1 and a.faults == edge

@@ -200,22 +200,30 @@ def _attempt(run: _Run, init: dict, s1) -> _Attempt:
     poses = {b: s1.delta @ init[b] for b in run.renderer.bones}  # they share the set-up error
     stages, warnings, disagreement, doubts, implausible, faults = [s1.result], [], {}, [], [], []
     if cfg.stage2.enabled:
-        s2 = _stage2(views, levels, run.renderer, poses, cfg, run.seed, run.progress,
-                     run.dislocated)  # fmt: skip
-        for _ in range(cfg.stage2.recentre):  # a pelvis at the edge of its box: once more
-            if not s2.faults:
-                break
-            s2 = _stage2(views, levels, run.renderer, s2.poses, cfg, run.seed, run.progress,
-                         run.dislocated)  # fmt: skip
+        s2 = _stage2_recentred(run, views, levels, poses)
         poses, disagreement, warnings, doubts = s2.poses, s2.disagreement, s2.warnings, s2.doubts
         faults = s2.faults
         stages.append(s2.result)
-        for b, found in s2.found.items():
-            run.found.setdefault(b, []).extend(found)
         intact = _intact_warnings(run, poses, views, levels[-1])
         warnings, implausible = [*warnings, *intact], [*s2.implausible, *intact]
     return _Attempt(views, levels[-1], poses, stages, warnings, disagreement, run.body(init).name,
                     doubts, implausible, faults)  # fmt: skip
+
+
+def _stage2_recentred(run: _Run, views: ViewSet, levels: list[Level], poses: dict):
+    """Stage 2 from ``poses``, run again from its answer while a bone of the pelvis ends at the
+    edge of its box (:func:`_edges`), up to ``Stage2Settings.recentre`` times; the last run's
+    outcome (its stage result times that run only). Every run's other answers for the re-searched
+    bone go to ``run.found``."""
+    for _ in range(run.cfg.stage2.recentre + 1):
+        s2 = _stage2(views, levels, run.renderer, poses, run.cfg, run.seed, run.progress,
+                     run.dislocated)  # fmt: skip
+        for b, found in s2.found.items():
+            run.found.setdefault(b, []).extend(found)
+        if not s2.faults:
+            break
+        poses = s2.poses
+    return s2
 
 
 def _intact_warnings(run: _Run, poses: dict, views: ViewSet, fine: Level) -> list[str]:
@@ -678,7 +686,7 @@ def _edges(problem: Stage2Problem, y: NDArray) -> list[str]:
         box = problem.box(i)
         if np.any(np.abs(y[6 * i : 6 * i + 6]) >= EDGE * box):
             out.append(f"stage 2 moved {bone} to the edge of its box ({box[0]:g} mm / "
-                       f"{box[3]:g} deg from where stage 1 put it): stage 1 misplaced the "
+                       f"{box[3]:g} deg from where it started): stage 1 misplaced the "
                        "pelvis")  # fmt: skip
     return out
 
