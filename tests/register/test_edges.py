@@ -62,7 +62,8 @@ def _attempt_with(monkeypatch, outcomes, recentre=3):
 
 def test_a_pelvis_at_the_edge_gets_stage_2_again_from_its_answer(monkeypatch):
     edge = ["stage 2 moved sacrum to the edge of its box ..."]
-    a, calls, found = _attempt_with(monkeypatch, [_outcome(1, edge), _outcome(2, edge), _outcome(3, [])])
+    runs = [_outcome(1, edge), _outcome(2, edge), _outcome(3, [])]
+    a, calls, found = _attempt_with(monkeypatch, runs)
     assert len(calls) == 3 and calls[1] == {"sacrum": 1} and calls[2] == {"sacrum": 2}
     assert a.poses == {"sacrum": 3} and a.faults == []
     assert found == [1, 2, 3]  # every run's other answers, for the second opinion
