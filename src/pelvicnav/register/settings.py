@@ -645,8 +645,8 @@ class RegistrationSettings:
         ``research.retry_mm`` away, in gradient NCC and in GO (each summed over the views;
         :mod:`~pelvicnav.register.opinion`); the flag stands, with the other answer named, when
         one scores as well or better in either, or when there is none to compare. The poses are
-        never changed. Default 0.0 (session 30): on the 17 registrations flagged only as in
-        question on seeds 311 and 347-367 it settles 12 of the 14 fine ones and none of the 3
+        never changed. Default 0.0 (session 30): on the 16 registrations flagged only as in
+        question on seeds 311 and 347-367 it settles 11 of the 13 fine ones and none of the 3
         gross ones. None switches it off.
     """
 
