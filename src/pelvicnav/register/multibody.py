@@ -482,8 +482,9 @@ def _doubts_stand(run: _Run, first: MultiBodyResult, again: MultiBodyResult) -> 
             f"first attempt) and a similarity less than {run.cfg.stage1.rescue_margin:g} better: "
             "the first attempt's doubts stand")  # fmt: skip
     said = tuple(f"first attempt: {w}" for w in first.warnings)
-    questioned = first.questions and not first.implausible
-    questions = (same, *said, *again.questions) if questioned and (
+    # questions, for a second opinion, when neither attempt had a fault (its joints aside: the
+    # first attempt's implausible answer is among those the second opinion compares)
+    questions = (same, *said, *again.questions) if first.questions and (
         again.converged or again.questions) else ()  # fmt: skip
     return replace(again, converged=False, warnings=(same, *said, *again.warnings),
                    questions=questions)  # fmt: skip
