@@ -93,13 +93,15 @@ def second_opinion(
         The answer, ``world_from_ct``.
     bone : str
     found : sequence of (4, 4)
-        Other answers for ``bone`` (``world_from_ct``).
+        Other answers for ``bone`` (``world_from_ct``); repeats count once.
     far_mm : float
     """
     kept = poses[bone]
     points, centre = renderer.points(bone, level.index), renderer.centroid(bone, level.index)
     far, apart = [], []
-    for T in found:
+    # the searches record an answer again each time they are judged against it: each once
+    unique = np.unique(np.asarray(found, dtype=np.float64).reshape(-1, 4, 4), axis=0)
+    for T in unique:
         mm, deg = pose_disagreement(kept, T, points, centre, views.projections,
                                     views.pixel_spacing)  # fmt: skip
         if mm > far_mm:
