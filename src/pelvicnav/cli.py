@@ -1035,7 +1035,7 @@ def register(
         "in question": "[red]NOT converged: in question, see the warnings[/]",
         "implausible": "[red]NOT converged: its joints are implausible, likely wrong[/]",
     }[result.verdict]
-    if result.converged and result.questions:
+    if result.settled:
         status += " (its questions settled by a second opinion, see the warnings)"
     console.print(
         f"wrote {out} ({record['mode']}): {status}, GO {result.similarity:.3f}, "

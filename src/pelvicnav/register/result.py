@@ -98,6 +98,12 @@ class MultiBodyResult:
     questions: tuple[str, ...] = ()
 
     @property
+    def settled(self) -> bool:
+        """Whether a second opinion settled the questions that flagged this result (it is
+        converged, and its ``questions`` stay listed)."""
+        return self.converged and bool(self.questions)
+
+    @property
     def verdict(self) -> str:
         """``"converged"``, ``"in question"`` (flagged) or ``"implausible"`` (flagged by its
         joints: likely wrong); see ``implausible``."""

@@ -313,7 +313,7 @@ def run_registration_case(case: dict) -> list[dict]:
             "case": case["index"], "subject": case["subject"], **r,
             "dislocation_mm": sim["dislocation"][0], "dislocation_deg": sim["dislocation"][1],
             "converged": res.converged, "implausible": bool(res.implausible),
-            "settled": res.converged and bool(res.questions),  # by the second opinion
+            "settled": res.settled,  # by the second opinion
             "restart_disagreement_mm": res.restart_disagreement.get(r["bone"], ""),
             "warnings": "; ".join(res.warnings), "similarity": res.similarity,
             "seconds": res.seconds, "stage1_s": res.stages[0].seconds,

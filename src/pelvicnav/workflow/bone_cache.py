@@ -119,16 +119,17 @@ def _entry(key: str) -> Path | None:
 
 
 def stored(key: str) -> bool:
-    """Whether an entry is stored under ``key`` (:func:`load` may still refuse it)."""
+    """Whether an entry is stored under ``key`` (:func:`load` may still refuse it): a cheap look
+    before reading."""
     path = _entry(key)
     return path is not None and path.is_file()
 
 
 def load(key: str) -> CachedBones | None:
     """The entry stored under ``key``, or None (no cache, no entry, or an unreadable one)."""
-    if not stored(key):
-        return None
     path = _entry(key)
+    if path is None or not path.is_file():
+        return None
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
