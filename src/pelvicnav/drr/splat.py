@@ -398,6 +398,8 @@ def _compile_fast():  # pragma: no cover - compiled code
             # padded canvas: samples just outside the image still blur into it
             img = np.zeros((rows + 2 * pad, cols + 2 * pad))
             r_lo, r_hi, c_lo, c_hi = rows + 2 * pad, -1, cols + 2 * pad, -1  # splatted box
+            width = cols + 2 * pad
+            flat = img.reshape(-1)  # indexed unsigned: no negative-index wraparound per sample
             for l in range(L):
                 m = M[b, k, l]
                 for i in range(offsets[l], offsets[l + 1]):
@@ -418,10 +420,11 @@ def _compile_fast():  # pragma: no cover - compiled code
                     r0 = int(v)
                     a = u - c0
                     bb = v - r0
-                    img[r0, c0] += value * (1.0 - a) * (1.0 - bb)
-                    img[r0, c0 + 1] += value * a * (1.0 - bb)
-                    img[r0 + 1, c0] += value * (1.0 - a) * bb
-                    img[r0 + 1, c0 + 1] += value * a * bb
+                    q = np.uint64(r0 * width + c0)  # r0, c0 >= 0 (checked above)
+                    flat[q] += value * (1.0 - a) * (1.0 - bb)
+                    flat[q + np.uint64(1)] += value * a * (1.0 - bb)
+                    flat[q + np.uint64(width)] += value * (1.0 - a) * bb
+                    flat[q + np.uint64(width + 1)] += value * a * bb
                     r_lo = min(r_lo, r0)
                     r_hi = max(r_hi, r0 + 1)
                     c_lo = min(c_lo, c0)
@@ -456,8 +459,9 @@ def _compile_fast():  # pragma: no cover - compiled code
                 src = img[a]
                 for j in range(-Ru, Ru + 1):
                     wj = wu[j + Ru]
+                    tap = src[ca + j : ca + j + n]  # a view: indices from 0 vectorise
                     for c in range(n):
-                        row[c] += wj * src[ca + c + j]
+                        row[c] += wj * tap[c]
             o = out[b, k]
             acc = np.empty(n)
             for a in range(max(r_lo - Rv, pad), min(r_hi + Rv, pad + rows - 1) + 1):
@@ -467,9 +471,9 @@ def _compile_fast():  # pragma: no cover - compiled code
                     src = tmp[a + j - r_lo]
                     for c in range(n):
                         acc[c] += wj * src[c]
-                dst = o[a - pad]
+                dst = o[a - pad, ca - pad : ca - pad + n]
                 for c in range(n):
-                    dst[ca - pad + c] = acc[c]
+                    dst[c] = acc[c]
 
     return kernel
 
@@ -509,8 +513,10 @@ def _compile_adjoint_blur():  # pragma: no cover - compiled code
                 src = tmp[a]
                 for j in range(-Ru, Ru + 1):
                     wj = wu[j + Ru]
-                    for cc in range(max(pad - j, 0), min(pad + cols - 1 - j, nc - 1) + 1):
-                        acc[cc] += wj * src[cc + j - pad]
+                    lo, hi = max(pad - j, 0), min(pad + cols - 1 - j, nc - 1) + 1
+                    part, tap = acc[lo:hi], src[lo + j - pad : hi + j - pad]  # views vectorise
+                    for cc in range(hi - lo):
+                        part[cc] += wj * tap[cc]
                 dst = H[k, a]
                 for cc in range(nc):
                     dst[cc] = acc[cc]
