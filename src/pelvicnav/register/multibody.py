@@ -449,7 +449,7 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
         return result
     far = run.cfg.research.retry_mm
     op = second_opinion(run.levels[-1], run.renderer, run.views, result.poses, bone,
-                        run.found.get(bone, []), far, _joints_check(run, result.poses))  # fmt: skip
+                        run.found.get(bone, []), far, _implausible(run, result.poses))  # fmt: skip
     if op.compared == 0:
         return result
     if min(op.lead, op.lead_level) > margin:
@@ -469,7 +469,7 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
     return replace(result, warnings=(*result.warnings, note))
 
 
-def _joints_check(run: _Run, poses: dict) -> Callable[[NDArray], NDArray[np.bool_]] | None:
+def _implausible(run: _Run, poses: dict) -> Callable[[NDArray], NDArray[np.bool_]] | None:
     """Whether the dislocated bone at each of some poses (N, 4, 4), the others at ``poses``, has
     joints no dislocation gives (:meth:`~pelvicnav.register.prior.JointPrior.implausible`); None
     when its joints go unchecked."""
@@ -663,12 +663,11 @@ def _joint_prior(renderer: Renderer, cfg: RegistrationSettings, dislocated: str 
                  seed: int) -> JointPrior | None:  # fmt: skip
     """The dislocated bone's joint prior (:func:`~pelvicnav.register.prior.joint_prior`): in
     stage 2's objective when ``joint_prior`` or ``joint_gap`` weighs it, else only measured
-    (``ResearchSettings.joint_limits``); None without a plan or stage 2, when tracking (a
-    gradient refinement does not read it) or with neither."""
+    (``ResearchSettings.joint_limits``); None without a plan, when tracking (a gradient
+    refinement does not read it) or with neither."""
     s2, limits = cfg.stage2, cfg.research.joint_limits
     active = s2.joint_prior > 0 or s2.joint_gap[0] > 0
-    if (dislocated is None or not s2.enabled or s2.mode == "gradient"
-            or not (active or limits is not None)):  # fmt: skip
+    if dislocated is None or s2.mode == "gradient" or not (active or limits is not None):
         return None
     return joint_prior(renderer, dislocated, weight=s2.joint_prior, gap_weight=s2.joint_gap[0],
                        gap_slack=s2.joint_gap[1], fields=limits[1] if limits else 0.0,
