@@ -32,7 +32,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from functools import partial
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -45,7 +44,7 @@ from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.errors import pose_disagreement
 from pelvicnav.register.initial import about, initial_pose, initial_translation
 from pelvicnav.register.opinion import second_opinion
-from pelvicnav.register.prior import MEASURED_POINTS, JointPrior, joint_prior
+from pelvicnav.register.prior import MEASURED_POINTS, joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
@@ -133,8 +132,7 @@ def register(
     cfg = settings or RegistrationSettings()
     init = _check_inputs(views, renderer, cfg, init_poses, dislocated)
     levels = build_levels(views, renderer, cfg.pyramid)
-    run = _Run(views, levels, renderer, cfg, seed, progress, dislocated, t_start,
-               prior=_joint_prior(renderer, cfg, dislocated, seed))  # fmt: skip
+    run = _Run(views, levels, renderer, cfg, seed, progress, dislocated, t_start)
     starts = [init]
     searching = any(cfg.stage1.max_generations)  # not tracking
     if cfg.stage1.initial_search_mm > 0 and searching:
@@ -172,7 +170,6 @@ class _Run:
     t_start: float
     # bone -> every answer the re-searches of every attempt gave it or replaced ((4, 4) each)
     found: dict[str, list[NDArray[np.float64]]] = field(default_factory=dict)
-    prior: JointPrior | None = None  # the dislocated bone's joints (_joint_prior)
 
     def body(self, init: dict):
         return stage1_body(self.renderer, self.cfg.stage1.body, init, self.dislocated)
@@ -220,7 +217,7 @@ def _stage2_recentred(run: _Run, views: ViewSet, levels: list[Level], poses: dic
     bone go to ``run.found``."""
     for _ in range(run.cfg.stage2.recentre + 1):
         s2 = _stage2(views, levels, run.renderer, poses, run.cfg, run.seed, run.progress,
-                     run.dislocated, run.prior)  # fmt: skip
+                     run.dislocated)  # fmt: skip
         for b, found in s2.found.items():
             run.found.setdefault(b, []).extend(found)
         if not s2.faults:
@@ -449,16 +446,14 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
         return result
     far = run.cfg.research.retry_mm
     op = second_opinion(run.levels[-1], run.renderer, run.views, result.poses, bone,
-                        run.found.get(bone, []), far, _implausible(run, result.poses))  # fmt: skip
+                        run.found.get(bone, []), far)  # fmt: skip
     if op.compared == 0:
         return result
     if min(op.lead, op.lead_level) > margin:
-        left = (f" with joints a dislocation gives ({op.left_out} whose joints none gives left "
-                "out)" if op.left_out else "")  # fmt: skip
         note = (f"settled by a second opinion: at the finest level, this {bone} scores above each "
                 f"of the {op.compared} other answers the searches found more than {far:g} mm "
-                f"away{left}, by {op.lead:.3f} at least in gradient correlation and "
-                f"{op.lead_level:.3f} in the searches' own similarity")  # fmt: skip
+                f"away, by {op.lead:.3f} at least in gradient correlation and {op.lead_level:.3f} "
+                "in the searches' own similarity")  # fmt: skip
         return replace(result, converged=True, warnings=(note, *result.warnings))
     which = " and ".join(name for name, lead in (("gradient correlation", op.lead),
                                                  ("the searches' own similarity", op.lead_level))
@@ -467,17 +462,6 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
             f"{op.rival_mm:.1f} mm / {op.rival_deg:.1f} deg away, scores as well or better at the "
             f"finest level in {which}")  # fmt: skip
     return replace(result, warnings=(*result.warnings, note))
-
-
-def _implausible(run: _Run, poses: dict) -> Callable[[NDArray], NDArray[np.bool_]] | None:
-    """Whether the dislocated bone at each of some poses (N, 4, 4), the others at ``poses``, has
-    joints no dislocation gives (:meth:`~pelvicnav.register.prior.JointPrior.implausible`); None
-    when its joints go unchecked."""
-    limits, prior = run.cfg.research.joint_limits, run.prior
-    if limits is None or prior is None or not prior.fields:
-        return None
-    others = {b: P for b, P in poses.items() if b != prior.bone}
-    return partial(prior.implausible, others=others, limits=limits)
 
 
 def _rescued_note(first: MultiBodyResult) -> str:
@@ -659,26 +643,18 @@ class _Stage2Outcome:
     faults: list[str]  # the pelvis's bones at the edge of their box (_edges)
 
 
-def _joint_prior(renderer: Renderer, cfg: RegistrationSettings, dislocated: str | None,
-                 seed: int) -> JointPrior | None:  # fmt: skip
-    """The dislocated bone's joint prior (:func:`~pelvicnav.register.prior.joint_prior`): in
-    stage 2's objective when ``joint_prior`` or ``joint_gap`` weighs it, else only measured
-    (``ResearchSettings.joint_limits``); None without a plan, when tracking (a gradient
-    refinement does not read it) or with neither."""
-    s2, limits = cfg.stage2, cfg.research.joint_limits
-    active = s2.joint_prior > 0 or s2.joint_gap[0] > 0
-    if dislocated is None or s2.mode == "gradient" or not (active or limits is not None):
-        return None
-    return joint_prior(renderer, dislocated, weight=s2.joint_prior, gap_weight=s2.joint_gap[0],
-                       gap_slack=s2.joint_gap[1], fields=limits[1] if limits else 0.0,
-                       max_points=200 if active else MEASURED_POINTS, seed=seed)  # fmt: skip
-
-
-def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated,
-            prior) -> _Stage2Outcome:  # fmt: skip
-    """Stage 2 from the stage-1 poses (``prior``: :func:`_joint_prior`), then the re-search
-    (sweep mode)."""
+def _stage2(views, levels, renderer, poses, cfg, seed, progress, dislocated) -> _Stage2Outcome:
+    """Stage 2 from the stage-1 poses, then the re-search (sweep mode)."""
     t0 = time.perf_counter()
+    prior = None
+    s2 = cfg.stage2
+    searching = s2.mode != "gradient"  # gradient refinement (tracking) does not read the prior
+    limits = cfg.research.joint_limits
+    active = s2.joint_prior > 0 or s2.joint_gap[0] > 0  # in the objective, else only measured
+    if dislocated is not None and searching and (active or limits is not None):
+        prior = joint_prior(renderer, dislocated, weight=s2.joint_prior, gap_weight=s2.joint_gap[0],
+                            gap_slack=s2.joint_gap[1], fields=limits[1] if limits else 0.0,
+                            max_points=200 if active else MEASURED_POINTS, seed=seed)  # fmt: skip
     problem = Stage2Problem(Blocks.at(poses, renderer), renderer, levels, cfg, dislocated, prior)
     y = np.zeros(6 * len(renderer.bones))
     search = joint if cfg.stage2.mode == "joint" else sweeps

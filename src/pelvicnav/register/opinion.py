@@ -23,20 +23,11 @@ settled seed 389 case 4 (a fresh seed): a hip 13.6 mm / 21 deg off whose true po
 found (it scored 0.024 above the answer in GO and 0.041 in gradient NCC), where GO put one of
 the answers found 0.015 above the kept one. The second opinion can only compare what the
 searches found: an answer that leads every other one found may still be wrong.
-
-An answer whose joints no dislocation gives (:meth:`~pelvicnav.register.prior.JointPrior.
-implausible`, the other bones at their final poses) is no rival while a plausible one is there to
-compare. Seed 421 case 14 (fresh; a hip 1.5 mm off): GO put an answer 23.9 mm away 0.011 above
-the kept one, gradient NCC 0.042 below; its joints are implausible, and the one plausible answer
-far away trailed the kept one in both (0.039 and 0.0045): settled. When every far answer is
-implausible, all are compared: seed 389 case 4 (the hip 13.6 mm off) had only implausible ones,
-and nothing to compare would have settled it. Rescored on the 41 registrations whose answers
-were recorded (sessions 30-31; development seeds 3-421), 421/14 is the only verdict that changes.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,9 +59,6 @@ class SecondOpinion:
     rival_mm, rival_deg : float
         How far the other answer that comes closest to the kept one (the least of its two
         leads) is from it (mm at the bone's centroid, degrees); NaN when none was compared.
-    left_out : int
-        Other answers far from the kept one left out as rivals: their joints are ones no
-        dislocation gives, and a plausible other answer was there to compare.
     """
 
     bone: str
@@ -79,7 +67,6 @@ class SecondOpinion:
     lead_level: float
     rival_mm: float
     rival_deg: float
-    left_out: int = 0
 
 
 def second_opinion(
@@ -90,7 +77,6 @@ def second_opinion(
     bone: str,
     found: Sequence[NDArray],
     far_mm: float,
-    implausible: Callable[[NDArray], NDArray[np.bool_]] | None = None,
 ) -> SecondOpinion:
     """Gradient NCC at ``level`` of ``bone`` at its kept pose and at each pose of ``found``
     further than ``far_mm`` from it (:func:`~pelvicnav.metrics.errors.pose_disagreement`), every
@@ -109,11 +95,6 @@ def second_opinion(
     found : sequence of (4, 4)
         Other answers for ``bone`` (``world_from_ct``); repeats count once.
     far_mm : float
-    implausible : callable, optional
-        ``(N, 4, 4)`` poses of ``bone`` -> ``(N,)`` whether their joints are ones no
-        dislocation gives (the others at ``poses``). Such an answer is no rival while a
-        plausible one is there to compare; when every far answer is implausible, all are
-        compared.
     """
     kept = poses[bone]
     points, centre = renderer.points(bone, level.index), renderer.centroid(bone, level.index)
@@ -129,13 +110,6 @@ def second_opinion(
     if not far:
         nan = float("nan")
         return SecondOpinion(bone, 0, nan, nan, nan, nan)
-    left_out = 0
-    if implausible is not None:
-        bad = np.asarray(implausible(np.stack(far)), dtype=bool)
-        if not bad.all():
-            far = [T for T, b in zip(far, bad, strict=True) if not b]
-            apart = [d for d, b in zip(apart, bad, strict=True) if not b]
-            left_out = int(bad.sum())
     bones = renderer.bones
     stack = np.stack([[T if b == bone else poses[b] for b in bones] for T in (kept, *far)])
     drrs = renderer.render(level.index, bones, stack, level.projections, level.shape)
@@ -143,5 +117,4 @@ def second_opinion(
     own = level.score(drrs)
     lead, lead_level = ncc[0] - ncc[1:], own[0] - own[1:]
     k = int(np.argmin(np.minimum(lead, lead_level)))
-    return SecondOpinion(bone, len(far), float(lead.min()), float(lead_level.min()), *apart[k],
-                         left_out)  # fmt: skip
+    return SecondOpinion(bone, len(far), float(lead.min()), float(lead_level.min()), *apart[k])

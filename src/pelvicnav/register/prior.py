@@ -146,14 +146,6 @@ class JointPrior:
         opening = np.percentile(d, GAP_QUANTILE, axis=1) - self.gap_ct
         return np.mean(d < self.clearance, axis=1), opening
 
-    def implausible(self, poses: NDArray, others: dict[str, NDArray],
-                    limits: tuple[float, float]) -> NDArray[np.bool_]:  # fmt: skip
-        """(N,) whether each candidate pose has joints no dislocation gives (:meth:`measure`):
-        more than ``limits[0]`` of its joint samples inside another bone, or its gap opened
-        more than ``limits[1]`` mm past the CT's (``ResearchSettings.joint_limits``)."""
-        inside, opening = self.measure(poses, others)
-        return (inside > limits[0]) | (opening > limits[1])
-
     def penalty(self, poses: NDArray, others: dict[str, NDArray], n_views: int) -> NDArray:
         """``K x`` (``weight x`` the fraction of joint samples inside another bone ``+
         gap_weight x`` the gap's excess over ``gap_ct + gap_slack`` in mm), for each candidate

@@ -184,19 +184,14 @@ def _joints(problem: Stage2Problem, i: int, y: NDArray, X: NDArray):
     """(inside fraction (N,), gap opening past the CT's (N,) mm) of bone ``i`` at each of the
     parameters ``X`` (N, 6), the others at ``y`` (:meth:`~pelvicnav.register.prior.JointPrior.
     measure`); None without the check (``joint_limits`` None, or no joint samples)."""
-    if _joints_unread(problem, i):
+    prior = problem.prior
+    if problem.settings.research.joint_limits is None or prior is None or not prior.fields:
+        return None
+    if prior.bone != problem.blocks.bones[i]:
         return None
     current = problem.blocks.poses(y[None])[0]
     others = {b: current[j] for j, b in enumerate(problem.blocks.bones) if j != i}
-    return problem.prior.measure(problem.blocks.bone_poses(i, X), others)
-
-
-def _joints_unread(problem: Stage2Problem, i: int) -> bool:
-    """Whether bone ``i``'s joints go unchecked: ``joint_limits`` None, no prior, no distance
-    fields, or the prior is another bone's."""
-    prior = problem.prior
-    return (problem.settings.research.joint_limits is None or prior is None or not prior.fields
-            or prior.bone != problem.blocks.bones[i])  # fmt: skip
+    return prior.measure(problem.blocks.bone_poses(i, X), others)
 
 
 def _implausible(problem: Stage2Problem, i: int, y: NDArray, X: NDArray) -> NDArray[np.bool_]:
@@ -204,12 +199,11 @@ def _implausible(problem: Stage2Problem, i: int, y: NDArray, X: NDArray) -> NDAr
     joints no dislocation gives: more than ``joint_limits[0]`` of its joint samples inside
     another bone, or the gap opened more than ``joint_limits[1]`` mm past the CT's (see
     :class:`~pelvicnav.register.settings.ResearchSettings`). All False without the check."""
-    if _joints_unread(problem, i):
+    measured = _joints(problem, i, y, X)
+    if measured is None:
         return np.zeros(len(X), dtype=bool)
-    current = problem.blocks.poses(y[None])[0]
-    others = {b: current[j] for j, b in enumerate(problem.blocks.bones) if j != i}
-    return problem.prior.implausible(problem.blocks.bone_poses(i, X), others,
-                                     problem.settings.research.joint_limits)  # fmt: skip
+    lim = problem.settings.research.joint_limits
+    return (measured[0] > lim[0]) | (measured[1] > lim[1])
 
 
 def _joint_warning(problem: Stage2Problem, i: int, y: NDArray) -> str | None:
