@@ -449,15 +449,16 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
                         run.found.get(bone, []), far)  # fmt: skip
     if op.compared == 0:
         return result
-    if min(op.lead, op.lead_level) > margin:
+    leads = (("gradient correlation", op.lead, margin[0]),
+             ("the searches' own similarity", op.lead_level, margin[1]))  # fmt: skip
+    if all(lead > m for _, lead, m in leads):
         note = (f"settled by a second opinion: at the finest level, this {bone} scores above each "
                 f"of the {op.compared} other answers the searches found more than {far:g} mm "
                 f"away, by {op.lead:.3f} at least in gradient correlation and {op.lead_level:.3f} "
                 "in the searches' own similarity")  # fmt: skip
         return replace(result, converged=True, warnings=(note, *result.warnings))
-    which = " and ".join(name for name, lead in (("gradient correlation", op.lead),
-                                                 ("the searches' own similarity", op.lead_level))
-                         if lead <= margin)  # fmt: skip
+    which = " and ".join(f"{name} (to within {m:g})" if m else name
+                         for name, lead, m in leads if lead <= m)  # fmt: skip
     note = (f"second opinion: another answer the searches found for {bone}, "
             f"{op.rival_mm:.1f} mm / {op.rival_deg:.1f} deg away, scores as well or better at the "
             f"finest level in {which}")  # fmt: skip

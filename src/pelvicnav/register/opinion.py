@@ -23,6 +23,14 @@ settled seed 389 case 4 (a fresh seed): a hip 13.6 mm / 21 deg off whose true po
 found (it scored 0.024 above the answer in GO and 0.041 in gradient NCC), where GO put one of
 the answers found 0.015 above the kept one. The second opinion can only compare what the
 searches found: an answer that leads every other one found may still be wrong.
+
+Real-CT seed 17 case 2 (session 31; CT 005, its left hip 6.73 mm off) is such a one: the truth
+scores 0.021 above the kept answer in gradient NCC and 0.006 in GO, no search found it, and the
+kept answer led the eight answers found by 0.005 and 0.003. Gradient NCC must therefore lead by
+more than a margin (``RegistrationSettings.second_opinion``, default 0.01 in gradient NCC, 0 in
+GO): rescored on the registrations whose answers were recorded in sessions 30-31, it keeps that
+case flagged and unsettles two fine ones (leads 0.0035 and 0.0045); every other fine one led by
+0.0106 or more.
 """
 
 from __future__ import annotations
