@@ -435,12 +435,12 @@ def _rescue(run: _Run, init: dict, answer: tuple, first: _Attempt, result: Multi
 def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
     """``result``, settled when it was flagged only by questions about the dislocated bone's
     answer and, at the finest level, that answer scores above every other one the searches found
-    far from it in gradient NCC and in the level's own similarity (GO) alike
-    (:mod:`~pelvicnav.register.opinion`, ``RegistrationSettings.second_opinion``); still
-    flagged, the other answer named, when one of them scores as well or better in either. The
-    poses are never changed. With one view (whose flag reads the detector distance) or no plan,
-    ``result`` as it is."""
-    margin, bone = run.cfg.second_opinion, run.dislocated
+    far from it, by more than ``RegistrationSettings.second_opinion``'s margins, in gradient NCC
+    and in the level's own similarity (GO) alike (:mod:`~pelvicnav.register.opinion`); still
+    flagged, the other answer named, when one of them comes within its margin or scores better
+    in either. The poses are never changed. With one view (whose flag reads the detector
+    distance) or no plan, ``result`` as it is."""
+    margin, bone = run.cfg.second_opinion, run.dislocated  # (gradient NCC, GO)
     if (margin is None or bone is None or len(run.views) < 2 or result.converged
             or result.implausible or not result.questions):  # fmt: skip
         return result
