@@ -118,17 +118,22 @@ def _entry(key: str) -> Path | None:
     return None if folder is None else folder / f"bones-{key}.npz"
 
 
+def _stored(key: str) -> Path | None:
+    """The file of the entry under ``key`` when it is there, else None."""
+    path = _entry(key)
+    return path if path is not None and path.is_file() else None
+
+
 def stored(key: str) -> bool:
     """Whether an entry is stored under ``key`` (:func:`load` may still refuse it): a cheap look
     before reading."""
-    path = _entry(key)
-    return path is not None and path.is_file()
+    return _stored(key) is not None
 
 
 def load(key: str) -> CachedBones | None:
     """The entry stored under ``key``, or None (no cache, no entry, or an unreadable one)."""
-    path = _entry(key)
-    if path is None or not path.is_file():
+    path = _stored(key)
+    if path is None:
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
