@@ -43,6 +43,35 @@ def test_bone_threshold_tells_a_masked_ct_from_air_around_a_body():
     assert bone_threshold(body, 150.0) == (150.0, None)
 
 
+def test_a_joint_surface_goes_to_the_bone_it_faces_though_the_partner_is_nearer():
+    """Two bones across a 1 mm joint: A's boundary at z = 0 faces +z, B's at z = 1 faces -z.
+    A's mesh is recessed to z = -3, so B's mesh is the nearest to A's boundary. A's vertices at
+    the joint still take A's boundary (it faces the way A's surface faces); B takes its own; a
+    third bone far off takes nothing. Without ``joint`` (the model's levels), the nearest mesh
+    alone decides, as before: A gets nothing."""
+    from scipy.spatial import cKDTree
+
+    from pelvicnav.shape.asm import _data_pairs, _nearest_bones, _Surface
+
+    g = np.stack(np.meshgrid(np.arange(-5.0, 6.0), np.arange(-5.0, 6.0)), -1).reshape(-1, 2)
+    flat = lambda z: np.column_stack([g, np.full(len(g), z)])  # noqa: E731
+    meshes = [flat(-3.0), flat(1.0), flat(60.0)]
+    up, down = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])
+    normals = [np.tile(up, (len(g), 1)), np.tile(down, (len(g), 1)), np.tile(up, (len(g), 1))]
+    points = np.vstack([flat(0.0), flat(1.0)])
+    directions = np.vstack([np.tile(up, (len(g), 1)), np.tile(down, (len(g), 1))])
+    surface = _Surface(points, directions)
+    nearest = _nearest_bones([cKDTree(m) for m in meshes], surface, 6.0)
+    joint = np.ones(len(g), dtype=bool)
+    j_a, pts_a = _data_pairs(0, normals, nearest, surface, joint)
+    assert len(pts_a) == len(g) and np.all(pts_a[:, 2] == 0.0)  # A's boundary, none of B's
+    assert np.all(np.linalg.norm(meshes[0][j_a][:, :2] - pts_a[:, :2], axis=1) == 0)
+    assert len(_data_pairs(0, normals, nearest, surface)[0]) == 0
+    j_b, pts_b = _data_pairs(1, normals, nearest, surface, joint)
+    assert len(pts_b) == len(g) and np.all(pts_b[:, 2] == 1.0)
+    assert len(_data_pairs(2, normals, nearest, surface, joint)[0]) == 0  # out of reach
+
+
 @pytest.fixture(scope="module")
 def patient():
     """A patient sampled from the model, its left hip dislocated by a known 12 mm / 6 deg, as a
