@@ -71,8 +71,9 @@ class ASMSettings:
         symphysis), the free-form stage searches ``joint_search_mm`` instead: the model's fit
         leaves parts of a joint surface 4-6 mm inside the bone (the profile search at 2 mm does
         not resolve a 1-3 mm joint space), out of the 2.5 mm search's reach. Atlas leave-one-out
-        (40 subjects): the hips' sacroiliac surfaces' 90th-percentile error 2.0 -> 1.3 mm
-        (median), and the hips' surface RMSD 0.75 -> 0.64 mm.
+        (40 subjects, median): the left hips' sacroiliac surfaces' 90th-percentile error 2.05 ->
+        1.3 mm, their surface RMSD 0.75 -> 0.71 mm; the target pose from these meshes 2.94 mm /
+        2.63 deg -> 2.45 / 2.54 (docs/segmentation.md).
     correspondence_rounds, correspondence_noise_mm2 : int, float
         The final correspondence stage (:func:`pelvicnav.shape.correspond.refine_correspondence`):
         rounds (0: none) and point-to-plane noise variance (mm^2).
