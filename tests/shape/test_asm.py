@@ -157,3 +157,13 @@ def test_asm_refuses_a_ct_that_is_not_3d_or_has_no_bone():
         segment_ct(np.zeros((64, 64)), np.eye(4), prior)
     with pytest.raises(ValueError, match="no bone"):
         segment_ct(np.full((40, 40, 40), 40.0, np.float32), np.eye(4), prior)
+
+
+@pytest.mark.parametrize("bad", [{"joint_search_mm": 0.0}, {"free_form_search_mm": -1.0},
+                                 {"joint_reach_mm": -2.0}])  # fmt: skip
+def test_asm_settings_refuse_searches_that_reach_nowhere(bad):
+    from pelvicnav.shape.asm import ASMSettings
+
+    with pytest.raises(ValueError, match="joint_reach_mm at least 0"):
+        ASMSettings(**bad)
+    ASMSettings(joint_reach_mm=0.0)  # no joint search: allowed

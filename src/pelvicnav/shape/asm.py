@@ -109,6 +109,11 @@ class ASMSettings:
             raise ValueError("levels_mm, search_mm and iterations must have one entry per level")
         if len(self.noise_mm2) != n:
             raise ValueError("noise_mm2 must have one entry per level")
+        if not (self.free_form_search_mm > 0 and self.joint_search_mm > 0
+                and self.joint_reach_mm >= 0):  # fmt: skip
+            raise ValueError("free_form_search_mm and joint_search_mm must be positive and "
+                             f"joint_reach_mm at least 0; got {self.free_form_search_mm}, "
+                             f"{self.joint_search_mm} and {self.joint_reach_mm}")  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)
