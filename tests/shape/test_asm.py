@@ -51,7 +51,7 @@ def test_a_joint_surface_goes_to_the_bone_it_faces_though_the_partner_is_nearer(
     alone decides, as before: A gets nothing."""
     from scipy.spatial import cKDTree
 
-    from pelvicnav.shape.asm import _data_pairs, _nearest_bones, _Surface
+    from pelvicnav.shape.asm import _data_pairs, _facing, _nearest_bones, _Surface
 
     g = np.stack(np.meshgrid(np.arange(-5.0, 6.0), np.arange(-5.0, 6.0)), -1).reshape(-1, 2)
     flat = lambda z: np.column_stack([g, np.full(len(g), z)])  # noqa: E731
@@ -62,14 +62,15 @@ def test_a_joint_surface_goes_to_the_bone_it_faces_though_the_partner_is_nearer(
     directions = np.vstack([np.tile(up, (len(g), 1)), np.tile(down, (len(g), 1))])
     surface = _Surface(points, directions)
     nearest = _nearest_bones([cKDTree(m) for m in meshes], surface, 6.0)
+    facing = _facing(normals, nearest, surface)
     joint = np.ones(len(g), dtype=bool)
-    j_a, pts_a = _data_pairs(0, normals, nearest, surface, joint)
+    j_a, pts_a = _data_pairs(0, facing, nearest, surface, joint)
     assert len(pts_a) == len(g) and np.all(pts_a[:, 2] == 0.0)  # A's boundary, none of B's
     assert np.all(np.linalg.norm(meshes[0][j_a][:, :2] - pts_a[:, :2], axis=1) == 0)
-    assert len(_data_pairs(0, normals, nearest, surface)[0]) == 0
-    j_b, pts_b = _data_pairs(1, normals, nearest, surface, joint)
+    assert len(_data_pairs(0, facing, nearest, surface)[0]) == 0
+    j_b, pts_b = _data_pairs(1, facing, nearest, surface, joint)
     assert len(pts_b) == len(g) and np.all(pts_b[:, 2] == 1.0)
-    assert len(_data_pairs(2, normals, nearest, surface, joint)[0]) == 0  # out of reach
+    assert len(_data_pairs(2, facing, nearest, surface, joint)[0]) == 0  # out of reach
 
 
 @pytest.fixture(scope="module")

@@ -493,14 +493,9 @@ def _nearest_bones(trees, surface: _Surface, reach: float):
     return np.stack([f[0] for f in found]), np.stack([f[1] for f in found])
 
 
-def _data_pairs(b, normals, nearest, surface: _Surface, joint=None):
-    """Bone-boundary points that bone ``b``'s surface should cover: within reach of it, nearer
-    to it than to the other bones, facing the same way; ``(vertex indices, points)``.
-    ``normals``: every bone's vertex normals. ``joint`` ((n_vertices,) bool, optional): bone
-    ``b``'s vertices at a joint, which also take a point that another bone's mesh is nearer to
-    when that mesh faces back (the point is not its boundary) and ``b``'s is the nearest facing
-    the point's way: across a joint space the two boundaries face each other, and a joint surface
-    fitted short of its boundary has the other bone's mesh nearer."""
+def _facing(normals, nearest, surface: _Surface) -> NDArray[np.float64]:
+    """(3, k): each boundary point's distance to each bone's nearest vertex (``nearest``) where
+    that vertex's normal (``normals``: every bone's) faces the point's way, else inf."""
     d, j_all = nearest
     facing = np.full(d.shape, np.inf)
     for c in range(len(d)):
@@ -508,6 +503,18 @@ def _data_pairs(b, normals, nearest, surface: _Surface, joint=None):
         agree = np.zeros(len(ok), dtype=bool)
         agree[ok] = np.einsum("ij,ij->i", surface.directions[ok], normals[c][j_all[c][ok]]) > 0.5
         facing[c] = np.where(agree, d[c], np.inf)
+    return facing
+
+
+def _data_pairs(b, facing, nearest, surface: _Surface, joint=None):
+    """Bone-boundary points that bone ``b``'s surface should cover: within reach of it, nearer
+    to it than to the other bones, facing the same way (``facing``: :func:`_facing`);
+    ``(vertex indices, points)``. ``joint`` ((n_vertices,) bool, optional): bone ``b``'s
+    vertices at a joint, which also take a point that another bone's mesh is nearer to when that
+    mesh faces back (the point is not its boundary) and ``b``'s is the nearest facing the point's
+    way: across a joint space the two boundaries face each other, and a joint surface fitted
+    short of its boundary has the other bone's mesh nearer."""
+    d, j_all = nearest
     near = np.isfinite(facing[b]) & (facing[b] <= facing.min(axis=0))
     mine = d[b] <= d.min(axis=0)
     if joint is not None:
@@ -523,6 +530,7 @@ def _fit_level(prior, V, level, surface, k, opt, inside, weights, threshold):
     for _ in range(opt.iterations[k]):
         normals = [vertex_normals(V[b], prior.faces[b]) for b in range(3)]
         nearest = _nearest_bones([cKDTree(V[b]) for b in range(3)], surface, opt.search_mm[k])
+        facing = _facing(normals, nearest, surface)
         for b, bone in enumerate(BONES):
             found, off = _edges(
                 level, V[b], normals[b], opt.search_mm[k], opt.min_edge_hu, inside, threshold
@@ -531,7 +539,7 @@ def _fit_level(prior, V, level, surface, k, opt, inside, weights, threshold):
                 continue
             idx = np.flatnonzero(found)
             targets = V[b][idx] + off[idx, None] * normals[b][idx]
-            j, pts = _data_pairs(b, normals, nearest, surface)
+            j, pts = _data_pairs(b, facing, nearest, surface)
             V[b], weights[bone], T = _clamped_fit(
                 prior.shapes[bone], np.concatenate([targets, pts]), np.concatenate([idx, j]),
                 opt.noise_mm2[k], opt.max_sigma,
@@ -566,12 +574,13 @@ def _free_form(V, faces, level, surface, opt, inside, threshold):
         normals = [vertex_normals(V[b], faces[b]) for b in range(3)]
         trees = [cKDTree(V[b]) for b in range(3)]
         nearest = _nearest_bones(trees, surface, wide)
+        facing = _facing(normals, nearest, surface)
         for b in range(3):
             reach = _search_reach(V, trees, b, opt)
             found, off = _joint_edges(level, V[b], normals[b], reach, opt, inside, threshold)
             disp = np.where(found[:, None], off[:, None] * normals[b], 0.0)
             weight = found.astype(np.float64)
-            j, pts = _data_pairs(b, normals, nearest, surface, reach > opt.free_form_search_mm)
+            j, pts = _data_pairs(b, facing, nearest, surface, reach > opt.free_form_search_mm)
             keep = np.linalg.norm(pts - V[b][j], axis=1) <= reach[j]
             np.add.at(disp, j[keep], pts[keep] - V[b][j[keep]])
             np.add.at(weight, j[keep], 1.0)
@@ -596,12 +605,13 @@ def _search_reach(V: NDArray, trees, b: int, opt) -> NDArray[np.float64]:
 
 
 def _joint_edges(level, vertices, normals, reach, opt, inside, threshold):
-    """:func:`_edges` with the search of ``reach`` (n,): the wider one where it is wider."""
+    """:func:`_edges` with the search of ``reach`` (n,): ``joint_search_mm`` where it is wider
+    than ``free_form_search_mm``."""
     found, off = _edges(level, vertices, normals, opt.free_form_search_mm, opt.min_edge_hu,
                         inside, threshold)  # fmt: skip
     far = np.flatnonzero(reach > opt.free_form_search_mm)
     if len(far):
-        f, o = _edges(level, vertices[far], normals[far], float(reach.max()), opt.min_edge_hu,
+        f, o = _edges(level, vertices[far], normals[far], opt.joint_search_mm, opt.min_edge_hu,
                       inside, threshold)  # fmt: skip
         found[far], off[far] = f, o
     return found, off
