@@ -153,7 +153,7 @@ def test_gradient_ncc_must_lead_by_its_margin(opinion):
     assert mb._second_opinion(_run(), _result()).converged
 
 
-@pytest.mark.parametrize("bad", [(0.01,), (-0.01, 0.0), (0.01, 0.0, 0.0)])
+@pytest.mark.parametrize("bad", [(0.01,), (-0.01, 0.0), (0.01, 0.0, 0.0), 0.01])
 def test_margins_are_two_and_not_negative(bad):
     with pytest.raises(ValueError, match="second_opinion must be"):
         RegistrationSettings(second_opinion=bad)

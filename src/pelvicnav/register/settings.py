@@ -682,7 +682,9 @@ class RegistrationSettings:
                 f"intact_limits must be (mm, deg) > 0 or None, got {self.intact_limits}"
             )
         if self.second_opinion is not None and (
-            len(self.second_opinion) != 2 or not min(self.second_opinion) >= 0
+            not isinstance(self.second_opinion, tuple | list)
+            or len(self.second_opinion) != 2
+            or not min(self.second_opinion) >= 0
         ):
             raise ValueError(
                 "second_opinion must be (gradient NCC margin, GO margin) >= 0 or None, got "
