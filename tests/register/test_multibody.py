@@ -462,6 +462,67 @@ def test_a_depth_probe_that_stays_away_gets_a_full_stage_1_run(monkeypatch):
     assert calls == []
 
 
+def test_the_pelvis_is_searched_again_from_where_the_dislocated_bone_puts_it(monkeypatch):
+    """A weak answer (seed 269 case 28: the sacrum and left hip 25-35 mm off in depth, the
+    dislocated right hip 0.3 mm) gets a short stage-1 run from the dislocated bone's pose in
+    the CT; when it ends elsewhere, scores better and stage 2 from it ends with a higher final
+    similarity, that attempt replaces the first, settled by its lead, with a note. Nothing
+    changes when the answer is not weak, the run comes back or scores worse, or the attempt
+    from it scores lower; with one view, no plan or the setting off nothing runs."""
+    import types
+
+    from pelvicnav.register import multibody as mb
+
+    cfg = RegistrationSettings()
+    run = replace(_stage1_run(cfg), views=[None, None])
+    answer = _ended(np.eye(4), np.zeros(6), f=-0.527)
+    disl = pj.six_dof_pose(np.array([10.0, 25.0, -3.0, 2.0, 0.0, 1.0]), center=_S1_CENTRE)
+    first = types.SimpleNamespace(poses=dict.fromkeys(_Bones.bones, disl))
+    result = types.SimpleNamespace(similarity=0.818)
+    calls, probe, weak, final = [], {}, [True], [0.911]
+
+    def fake_stage1(views, levels, renderer, body, settings, seed, progress=None):
+        calls.append((settings.stage1.populations[0], seed))
+        assert np.allclose(body.start, disl)  # every bone where the dislocated one is
+        return _ended(disl, probe["params"], f=probe["f"])[1]  # ended relative to the answer
+
+    def fake_attempt(run_, start, s1):
+        return types.SimpleNamespace(start=start, s1=s1)
+
+    def fake_judged(run_, attempt, settled):
+        return mb.MultiBodyResult(poses={}, projections=(), similarity=final[0], converged=True,
+                                  stages=[], seconds=0.0, stage1_bone="pelvis",
+                                  warnings=("x",))  # fmt: skip
+
+    monkeypatch.setattr(mb, "run_stage1", fake_stage1)
+    monkeypatch.setattr(mb, "_weak", lambda run_, a, similarity: weak[0])
+    monkeypatch.setattr(mb, "_attempt", fake_attempt)
+    monkeypatch.setattr(mb, "_judged", fake_judged)
+    probe.update(params=[4.0, 30.0, 2.0, 0, 0, 0], f=-0.590)  # elsewhere, 12 % better
+    (start, s1), second, again, settled = mb._anchored(run, answer, first, result)
+    assert calls == [(cfg.stage1.probe_population, mb.run_seed(0, mb.ANCHOR))]
+    assert second.s1 is s1 and settled and again.similarity == 0.911
+    assert again.warnings[0].startswith("stage 1 from where the left_hip puts the pelvis")
+    assert "0.818 -> 0.911" in again.warnings[0] and again.warnings[1] == "x"
+    probe.update(f=-0.540)  # elsewhere, 2.5 % better: taken, not settled by its lead
+    assert mb._anchored(run, answer, first, result)[3] is False
+    final[0] = 0.80  # stage 2 from there ends lower
+    assert mb._anchored(run, answer, first, result) is None
+    final[0] = 0.911
+    probe.update(f=-0.520)  # scores worse
+    assert mb._anchored(run, answer, first, result) is None
+    probe.update(params=[0.5, 0.3, 0.0, 0.2, 0, 0], f=-0.590)  # came back to the answer
+    assert mb._anchored(run, answer, first, result) is None
+    calls[:] = []
+    weak[0] = False
+    assert mb._anchored(run, answer, first, result) is None
+    weak[0] = True
+    for off in (replace(run, views=[None]), replace(run, dislocated=None),
+                replace(run, cfg=replace(cfg, anchored_probe=False))):  # fmt: skip
+        assert mb._anchored(off, answer, first, result) is None
+    assert calls == []
+
+
 @pytest.mark.parametrize(
     "bad",
     [{"probe_mm": -1.0}, {"probe_sigma": 0.0}, {"probe_population": 1}, {"probe_generations": 0}],

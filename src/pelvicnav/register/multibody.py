@@ -6,7 +6,8 @@ probed in depth, :func:`_probed`), stage 2
 (:mod:`~pelvicnav.register.stage2`: every bone's 6 DoF, sweeps or joint; then the intact joints
 tried, :func:`~pelvicnav.register.stage2.rejoined`), the re-search of the dislocated bone
 (:mod:`~pelvicnav.register.research`; a bone it leaves in question searched again at the finest
-level alone), and judge the result.
+level alone), and judge the result. A weak answer's pelvis is searched again from where the
+dislocated bone puts it (:func:`_anchored`).
 
 DRRs come from a :class:`~pelvicnav.drr.renderer.Renderer`: splatted point models
 (:func:`register_multibody` builds them from a CT and label map) or the ray-cast reference
@@ -48,7 +49,7 @@ from pelvicnav.register.prior import MEASURED_POINTS, joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
-from pelvicnav.register.seeds import PROBE, RESCUE, run_seed
+from pelvicnav.register.seeds import ANCHOR, PROBE, RESCUE, run_seed
 from pelvicnav.register.settings import RegistrationSettings
 from pelvicnav.register.stage1 import pelvis_bones, run_stage1, stage1_body
 from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, rejoined, sweeps
@@ -151,9 +152,52 @@ def register(
     # a tracked frame's stage 1 searches nothing: it starts where the last frame settled
     settled = not searching or _settled(run, (start, s1), tried)
     result = _judged(run, attempt, settled)
+    if searching and (anchored := _anchored(run, (start, s1), attempt, result)) is not None:
+        (start, s1), attempt, result, settled = anchored
     if not (result.converged or guessed or not rescue):
         result = _rescue(run, init, (start, s1), attempt, result, settled)
     return _second_opinion(run, result)
+
+
+def _anchored(run: _Run, answer: tuple, first: _Attempt, result: MultiBodyResult) -> tuple | None:
+    """``((start, stage-1 outcome), attempt, result, settled)`` from stage 1 run again where
+    the dislocated bone puts the pelvis (``RegistrationSettings.anchored_probe``), when that
+    run ends elsewhere than stage 1's ``answer`` (start, outcome), scores better, and the
+    attempt from it ends with a higher final similarity than ``result``; else None. The run
+    starts every bone at the dislocated bone's ``world_from_ct`` in the ``first`` attempt
+    (their poses in the CT) with the depth probes' budget; it has settled when it leads
+    ``answer`` by ``unsettled_lead`` (:func:`_leads`)."""
+    cfg, bone = run.cfg, run.dislocated
+    if not cfg.anchored_probe or bone is None or len(run.views) < 2 or cfg.stage1.dof != 6:
+        return None
+    if not _weak(run, first, result.similarity):
+        return None
+    start = dict.fromkeys(run.renderer.bones, first.poses[bone])
+    probe = run_stage1(run.views, run.levels, run.renderer, run.body(start),
+                       _probe_settings(cfg), run_seed(run.seed, ANCHOR))  # fmt: skip
+    tried = (start, probe)
+    if _f(probe) >= _f(answer[1]) or _agree(run, answer, tried):
+        return None
+    settled = _leads(run, tried, [answer])
+    second = _attempt(run, start, probe)
+    again = _judged(run, second, settled)
+    if again.similarity <= result.similarity:
+        return None
+    mm, deg = _between(run, answer, tried)
+    note = (f"stage 1 from where the {bone} puts the pelvis (their poses in the CT) found a "
+            f"better answer {mm:.1f} mm / {deg:.1f} deg from the first one's pelvis (final "
+            f"similarity {result.similarity:.3f} -> {again.similarity:.3f})")  # fmt: skip
+    return tried, second, replace(again, warnings=(note, *again.warnings)), settled
+
+
+def _weak(run: _Run, a: _Attempt, similarity: float) -> bool:
+    """Whether attempt ``a``'s final GO ``similarity`` is below ``unsettled_similarity`` per view
+    of what its DRRs can score, as :func:`_unsettled` asks of an unsettled stage 1."""
+    bones = run.renderer.bones
+    stack = np.stack([a.poses[b] for b in bones])[None]
+    drrs = run.renderer.render(a.fine.index, bones, stack, a.fine.projections, a.fine.shape)
+    metric, n = run.cfg.pyramid.metrics[a.fine.index], len(run.views)
+    return _unsettled(False, metric, similarity, _attainable(metric, drrs[0], n), n, run.cfg)
 
 
 @dataclass(frozen=True, eq=False)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "ANCHOR",
     "FINE",
     "JOINT",
     "PROBE",
@@ -24,7 +25,7 @@ __all__ = [
     "run_seed",
 ]
 
-STAGE1, SWEEP, JOINT, RESEARCH, REPASS, RESCUE, RAY, TURN, PROBE, FINE = range(1, 11)
+STAGE1, SWEEP, JOINT, RESEARCH, REPASS, RESCUE, RAY, TURN, PROBE, FINE, ANCHOR = range(1, 12)
 
 
 def run_seed(seed: int, stage: int, *path: int) -> int:

@@ -622,6 +622,21 @@ class RegistrationSettings:
         safer first registration, set False. Since session 24 the depth probes
         (``Stage1Settings.probe_mm``) catch 193 case 0 for 0.8 s. A tracked frame (no stage-1
         search) has settled where the last frame did, either way.
+    anchored_probe : bool
+        With a plan and two or more views (6 DoF), a registration whose final GO is below
+        ``unsettled_similarity`` per view (of what the answer's DRRs can score) gets one more
+        short stage-1 run (``Stage1Settings``' probe budget) from where its dislocated bone puts
+        the pelvis: every other bone at the dislocated bone's ``world_from_ct``, their poses in
+        the CT. Stage 1 searches the pelvis from the set-up error alone, and where its runs all
+        end in a wrong basin nothing else looks elsewhere; stage 2 still finds the dislocated
+        bone by its own edges, so its answer places the pelvis within the dislocation. When that
+        run ends elsewhere and scores better than stage 1's answer, stage 2 runs from it and the
+        result with the higher final similarity is kept (:func:`~pelvicnav.register.multibody.
+        _anchored`). Seed 269 case 28: every stage-1 run put the sacrum and the left hip 25 and
+        35 mm off in depth (GO 0.41 per view, unflagged; the right hip, dislocated, 0.3 mm);
+        the run from the right hip ends 0.7 / 1.0 mm from the truth, its stage-1 objective
+        -0.590 against -0.527. About 0.3 s where it runs (the weak half of registrations); the
+        rest are unchanged. False switches it off.
     intact_limits : (mm, deg) or None
         With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
         intact joints): a registration where stage 2 moved one of them further than this from
@@ -663,6 +678,7 @@ class RegistrationSettings:
     unsettled_confirmations: int = 2
     unsettled_lead: float = 0.05
     lone_run_settles: bool = True
+    anchored_probe: bool = True
     intact_limits: tuple[float, float] | None = (5.0, 5.0)
     second_opinion: tuple[float, float] | None = (0.01, 0.0)
 
