@@ -635,8 +635,13 @@ class RegistrationSettings:
         _anchored`). Seed 269 case 28: every stage-1 run put the sacrum and the left hip 25 and
         35 mm off in depth (GO 0.41 per view, unflagged; the right hip, dislocated, 0.3 mm);
         the run from the right hip ends 0.7 / 1.0 mm from the truth, its stage-1 objective
-        -0.590 against -0.527. About 0.3 s where it runs (the weak half of registrations); the
-        rest are unchanged. False switches it off.
+        -0.590 against -0.527. Measured (session 33) on the registrations below 0.5 per view:
+        it changed none of 48 on the fresh seeds 479 and 487 nor 40 good ones of seeds 373-467
+        (bit-identical), and 4 of the 28 flagged or gross ones of seeds 373-467: 373/33 and
+        439/4 from 20-46 mm off to within 0.4 mm (still flagged: stage 1 unsettled, the
+        floor), 443/4 gross either way (implausible), 431/7 fine either way. Cost: the probe,
+        0.3-0.4 s, in the weak half of registrations (the benchmark's first registration 3.74
+        -> 4.15 s, median of 3, quiet machine). False switches it off.
     intact_limits : (mm, deg) or None
         With a plan, the bones stage 1 moves as the pelvis keep their CT relative poses (the
         intact joints): a registration where stage 2 moved one of them further than this from
