@@ -166,7 +166,8 @@ def _anchored(run: _Run, answer: tuple, first: _Attempt, result: MultiBodyResult
     attempt from it ends with a higher final similarity than ``result``; else None. The run
     starts every bone at the dislocated bone's ``world_from_ct`` in the ``first`` attempt
     (their poses in the CT) with the depth probes' budget; it has settled when it leads
-    ``answer`` by ``unsettled_lead`` (:func:`_leads`)."""
+    ``answer`` by ``unsettled_lead`` (:func:`_leads`). The attempt's re-search answers join
+    ``run.found`` whether it is kept or not, as the rescue's do."""
     cfg, bone = run.cfg, run.dislocated
     if not cfg.anchored_probe or bone is None or len(run.views) < 2 or cfg.stage1.dof != 6:
         return None
