@@ -530,3 +530,11 @@ def test_the_pelvis_is_searched_again_from_where_the_dislocated_bone_puts_it(mon
 def test_probe_settings_are_checked(bad):
     with pytest.raises(ValueError, match="probe_mm must be >= 0"):
         Stage1Settings(**bad)
+
+
+@pytest.mark.parametrize("name", ["lone_run_settles", "anchored_probe"])
+@pytest.mark.parametrize("bad", ["false", 0, None])
+def test_the_switches_are_booleans(name, bad):
+    """A switch given as text or a number (as read from a file) is refused, not taken as on."""
+    with pytest.raises(ValueError, match=f"{name} must be True or False, got {bad!r}"):
+        RegistrationSettings(**{name: bad})

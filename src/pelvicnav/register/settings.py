@@ -688,6 +688,9 @@ class RegistrationSettings:
     second_opinion: tuple[float, float] | None = (0.01, 0.0)
 
     def __post_init__(self) -> None:
+        for name in ("lone_run_settles", "anchored_probe"):
+            if not isinstance(getattr(self, name), bool):  # "false" would switch it on
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if not (
             self.unsettled_confirm_mm >= 0
             and self.unsettled_confirmations >= 0
