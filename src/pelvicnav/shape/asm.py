@@ -606,14 +606,13 @@ def _search_reach(V: NDArray, trees, b: int, opt) -> NDArray[np.float64]:
 
 def _joint_edges(level, vertices, normals, reach, opt, inside, threshold):
     """:func:`_edges` with the search of ``reach`` (n,): ``joint_search_mm`` where it is wider
-    than ``free_form_search_mm``."""
-    found, off = _edges(level, vertices, normals, opt.free_form_search_mm, opt.min_edge_hu,
-                        inside, threshold)  # fmt: skip
-    far = np.flatnonzero(reach > opt.free_form_search_mm)
-    if len(far):
-        f, o = _edges(level, vertices[far], normals[far], opt.joint_search_mm, opt.min_edge_hu,
-                      inside, threshold)  # fmt: skip
-        found[far], off[far] = f, o
+    than ``free_form_search_mm``, each vertex's profile sampled once."""
+    found, off = np.zeros(len(vertices), dtype=bool), np.zeros(len(vertices))
+    wide = reach > opt.free_form_search_mm
+    for sel, search in ((~wide, opt.free_form_search_mm), (wide, opt.joint_search_mm)):
+        if sel.any():
+            found[sel], off[sel] = _edges(level, vertices[sel], normals[sel], search,
+                                          opt.min_edge_hu, inside, threshold)  # fmt: skip
     return found, off
 
 
