@@ -489,7 +489,7 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
     if (margin is None or bone is None or len(run.views) < 2 or result.converged
             or result.implausible or not result.questions):  # fmt: skip
         return result
-    far = run.cfg.research.retry_mm
+    far = run.cfg.research.ambiguity
     op = second_opinion(run.levels[-1], run.renderer, run.views, result.poses, bone,
                         run.found.get(bone, []), far)  # fmt: skip
     if op.compared == 0:
@@ -498,9 +498,9 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
              ("the searches' own similarity", op.lead_level, margin[1]))  # fmt: skip
     if all(lead > m for _, lead, m in leads):
         note = (f"settled by a second opinion: at the finest level, this {bone} scores above each "
-                f"of the {op.compared} other answers the searches found more than {far:g} mm "
-                f"away, by {op.lead:.3f} at least in gradient correlation and {op.lead_level:.3f} "
-                "in the searches' own similarity")  # fmt: skip
+                f"of the {op.compared} other answers the searches found more than {far[0]:g} mm "
+                f"or {far[1]:g} deg away, by {op.lead:.3f} at least in gradient correlation and "
+                f"{op.lead_level:.3f} in the searches' own similarity")  # fmt: skip
         return replace(result, converged=True, warnings=(note, *result.warnings))
     which = " and ".join(f"{name} (to within {m:g})" if m else name
                          for name, lead, m in leads if lead <= m)  # fmt: skip

@@ -661,9 +661,10 @@ class RegistrationSettings:
         bone's answer is in question (``MultiBodyResult.questions``: two answers the images
         score alike, an answer found once, a fine-level search that disagrees, a rescue that
         kept the pelvis) is settled when, at the finest level, its answer scores higher than
-        every other answer the searches gave the bone more than ``research.retry_mm`` away by
-        more than these margins, in gradient NCC and in GO (each summed over the views;
-        :mod:`~pelvicnav.register.opinion`); the flag stands, with the other answer named, when
+        every other answer the searches gave the bone beyond ``research.ambiguity`` (3 mm or
+        3 deg; ``retry_mm``, 4 mm, until session 33) by more than these margins, in gradient
+        NCC and in GO (each summed over the views; :mod:`~pelvicnav.register.opinion`); the
+        flag stands, with the other answer named, when
         one comes within its margin or scores better, or when there is none to compare. The
         poses are never changed. Default (0.01, 0.0): session 30 shipped (0, 0), which settled
         real-CT seed 17 case 2 (a hip 6.73 mm off whose truth no search found; it led the
