@@ -16,8 +16,17 @@ from pelvicnav.register.settings import PyramidSettings
 
 
 @pytest.fixture(scope="module")
-def two_bodies():
+def two_bodies(two_body_views):
     """Two point bodies, their DRRs at a known pose as the radiographs, a 2-level pyramid."""
+    renderer, views, truth = two_body_views
+    levels = build_levels(views, renderer, PyramidSettings(metrics=("gncc", "gncc")))
+    return renderer, levels, truth
+
+
+@pytest.fixture(scope="module")
+def two_body_views():
+    """Two point bodies (a renderer of two levels), their DRRs in two views at a known pose as
+    the radiographs, and that pose."""
     rng = np.random.default_rng(2)
     fine = {"a": blob([0, 0, 0], 6000, rng, 1.5), "b": blob([50, 0, 10], 6000, rng, 1.5)}
     coarse = {k: PointModel(m.points[::4], 4 * m.mass[::4], 3.0) for k, m in fine.items()}
@@ -29,5 +38,4 @@ def two_bodies():
     imgs = splat([fine["a"], fine["b"]], np.stack([truth["a"], truth["b"]])[None], Ps, (512, 512))
     views = ViewSet.from_arrays([np.asarray(i, dtype=np.float64) for i in imgs[0]], list(Ps),
                                 [c.pixel_spacing for c in carms])  # fmt: skip
-    levels = build_levels(views, renderer, PyramidSettings(metrics=("gncc", "gncc")))
-    return renderer, levels, truth
+    return renderer, views, truth

@@ -81,6 +81,25 @@ def test_an_answer_turned_beyond_the_limit_is_compared_however_near(two_bodies):
     assert op.lead > 0 and op.lead_level > 0
 
 
+def test_the_seconds_count_the_second_opinion(two_body_views, monkeypatch):
+    """``seconds`` is the whole call: what runs after the answer was judged (a probe or rescue
+    that changed nothing, the second opinion) counted as time outside the registration."""
+    import time
+
+    renderer, views, truth = two_body_views
+    judged = mb._second_opinion
+
+    def slow(run, result):
+        time.sleep(0.3)
+        return judged(run, result)
+
+    monkeypatch.setattr(mb, "_second_opinion", slow)
+    t0 = time.perf_counter()
+    res = mb.register(views, renderer, init_poses=truth, settings=RegistrationSettings.tracking())
+    wall = time.perf_counter() - t0
+    assert wall - 0.1 < res.seconds <= wall  # not wall - 0.3
+
+
 # --- the verdict -------------------------------------------------------------------------
 
 

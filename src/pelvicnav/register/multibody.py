@@ -156,7 +156,8 @@ def register(
         (start, s1), attempt, result, settled = anchored
     if not (result.converged or guessed or not rescue):
         result = _rescue(run, init, (start, s1), attempt, result, settled)
-    return _second_opinion(run, result)
+    # the whole call: a probe or rescue that changed nothing ran after the answer was judged
+    return replace(_second_opinion(run, result), seconds=time.perf_counter() - t_start)
 
 
 def _anchored(run: _Run, answer: tuple, first: _Attempt, result: MultiBodyResult) -> tuple | None:

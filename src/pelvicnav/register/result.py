@@ -59,6 +59,7 @@ class MultiBodyResult:
     converged : bool
     stages : list of StageResult
     seconds : float
+        The whole registration (every stage, re-search, probe, rescue and the second opinion).
     stage1_bone : str
     warnings : tuple of str
     restart_disagreement : dict bone -> mm
