@@ -69,6 +69,13 @@ def test_nothing_far_is_nothing_compared(two_bodies):
     assert op.compared == 0 and np.isnan(op.lead) and np.isnan(op.lead_level)
 
 
+@pytest.mark.parametrize("far", [4.0, (4.0,), (4.0, "x"), (-1.0, 3.0), (3.0, float("nan"))])
+def test_the_limits_must_be_mm_and_degrees(two_bodies, far):
+    renderer, levels, truth = two_bodies
+    with pytest.raises(ValueError, match=r"far must be \(mm, deg\)"):
+        second_opinion(levels[-1], renderer, _views(levels), truth, "a", [truth["a"]], far)
+
+
 def test_an_answer_turned_beyond_the_limit_is_compared_however_near(two_bodies):
     # fresh seed 487 case 20: a hip 0.92 mm off was in question for an answer 2.0 mm / 3.3 deg
     # away, which the second opinion (answers more than 4 mm away) did not compare

@@ -120,6 +120,7 @@ def second_opinion(
         An answer further than either (mm at the centroid, degrees) is another answer: the
         ambiguity limits (``ResearchSettings.ambiguity``), beyond which answers raise questions.
     """
+    far_mm, far_deg = _limits(far)
     kept = poses[bone]
     points, centre = renderer.points(bone, level.index), renderer.centroid(bone, level.index)
     others, apart = [], []
@@ -128,7 +129,7 @@ def second_opinion(
     for T in unique:
         mm, deg = pose_disagreement(kept, T, points, centre, views.projections,
                                     views.pixel_spacing)  # fmt: skip
-        if mm > far[0] or deg > far[1]:
+        if mm > far_mm or deg > far_deg:
             others.append(T)
             apart.append((mm, deg))
     if not others:
@@ -142,3 +143,15 @@ def second_opinion(
     lead, lead_level = ncc[0] - ncc[1:], own[0] - own[1:]
     k = int(np.argmin(np.minimum(lead, lead_level)))
     return SecondOpinion(bone, len(others), float(lead.min()), float(lead_level.min()), *apart[k])
+
+
+def _limits(far) -> tuple[float, float]:
+    """``far`` as ``(mm, deg)``, both finite and >= 0; ValueError otherwise (a lone number, as
+    this function took until session 33, included)."""
+    try:
+        mm, deg = (float(v) for v in far)
+    except (TypeError, ValueError):
+        raise ValueError(f"far must be (mm, deg), got {far!r}") from None
+    if not (np.isfinite([mm, deg]).all() and min(mm, deg) >= 0):
+        raise ValueError(f"far must be (mm, deg), each finite and >= 0, got {far!r}")
+    return mm, deg
