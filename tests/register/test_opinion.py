@@ -24,7 +24,7 @@ def _turned(T, deg, centre):
     """``T`` turned by ``deg`` about the world z axis through ``centre`` (world mm)."""
     c = np.asarray(centre, dtype=np.float64)
     R = tf.from_params([0.0, 0.0, 0.0], [0.0, 0.0, float(np.deg2rad(deg))])
-    return tf.from_params(list(c), [0.0, 0.0, 0.0]) @ R @ tf.from_params(list(-c), [0.0] * 3) @ T
+    return _shifted(R, c - R[:3, :3] @ c) @ T
 
 
 class _Views(SimpleNamespace):

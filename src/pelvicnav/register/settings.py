@@ -664,11 +664,11 @@ class RegistrationSettings:
         every other answer the searches gave the bone beyond ``research.ambiguity`` (3 mm or
         3 deg; ``retry_mm``, 4 mm, until session 33) by more than these margins, in gradient
         NCC and in GO (each summed over the views; :mod:`~pelvicnav.register.opinion`); the
-        flag stands, with the other answer named, when
-        one comes within its margin or scores better, or when there is none to compare. The
-        poses are never changed. Default (0.01, 0.0): session 30 shipped (0, 0), which settled
-        real-CT seed 17 case 2 (a hip 6.73 mm off whose truth no search found; it led the
-        answers found by 0.005 in gradient NCC and 0.003 in GO). Rescored on the 52
+        flag stands, with the other answer named, when one comes within its margin or scores
+        better, or when there is none to compare. The poses are never changed. Default
+        (0.01, 0.0): session 30 shipped (0, 0), which settled real-CT seed 17 case 2 (a hip
+        6.73 mm off whose truth no search found; it led the answers found by 0.005 in gradient
+        NCC and 0.003 in GO). Rescored on the 52
         registrations whose answers were recorded (sessions 30-31), 0.01 keeps it flagged and
         unsettles two fine ones (419/15 and 367/36, leads 0.0035 and 0.0045); every other
         fine one led by 0.0106 or more. None switches it off.
