@@ -27,9 +27,11 @@ from pelvicnav.studies.registration import (
 )
 
 
-def case_of(atlas, seed: int, index: int) -> dict:
-    """Case ``index`` of the study with ``seed`` (as many cases as it needs)."""
-    study = registration_study(atlas, RegistrationStudySettings(n_cases=index + 1, seed=seed))
+def case_of(atlas, seed: int, index: int, settings: RegistrationSettings) -> dict:
+    """Case ``index`` of the study with ``seed`` (as many cases as it needs), registered with
+    ``settings``."""
+    study = registration_study(atlas, RegistrationStudySettings(n_cases=index + 1, seed=seed),
+                               registration=settings)  # fmt: skip
     return study.cases[index]
 
 
@@ -59,7 +61,7 @@ def main() -> None:
         ap.error(f"--without takes {', '.join(switches)}; got {', '.join(unknown)}")
     settings = RegistrationSettings(**dict.fromkeys(args.without, False))
     atlas = load_atlas(args.atlas)
-    cases = [{**case_of(atlas, s, i), "registration": settings} for s, i in pairs]
+    cases = [case_of(atlas, s, i, settings) for s, i in pairs]
     rows = []
     with ProcessPoolExecutor(args.workers) as pool:
         for (seed, _), bones in zip(pairs, pool.map(run, cases), strict=True):

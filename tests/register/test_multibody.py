@@ -308,7 +308,7 @@ _S1_CENTRE = np.array([0.0, 0.0, -10.0])  # the sacrum and right hip's centre (_
 def _stage1_run(cfg):
     from pelvicnav.register.multibody import _Run
 
-    return _Run(None, None, _Bones(), cfg, 0, None, "left_hip", 0.0)
+    return _Run(None, None, _Bones(), cfg, 0, None, "left_hip")
 
 
 def _ended(turn, params, converged=True, f=-1.0):

@@ -255,7 +255,7 @@ def _judged(two_bodies, ambiguous=(), faults=()):
     cfg = RegistrationSettings(pyramid=PyramidSettings(metrics=("gncc", "gncc")))
     views = _views(levels)
     return mb._judge(views, levels[-1], renderer, truth, [StageResult("stage 2", [cma], 0.0)],
-                     list(ambiguous), {}, cfg, 0.0, "pelvis", True, list(faults))  # fmt: skip
+                     list(ambiguous), {}, cfg, "pelvis", True, list(faults))  # fmt: skip
 
 
 def test_questions_are_kept_only_when_nothing_else_flags(two_bodies):

@@ -133,7 +133,7 @@ def register(
     cfg = settings or RegistrationSettings()
     init = _check_inputs(views, renderer, cfg, init_poses, dislocated)
     levels = build_levels(views, renderer, cfg.pyramid)
-    run = _Run(views, levels, renderer, cfg, seed, progress, dislocated, t_start)
+    run = _Run(views, levels, renderer, cfg, seed, progress, dislocated)
     starts = [init]
     searching = any(cfg.stage1.max_generations)  # not tracking
     if cfg.stage1.initial_search_mm > 0 and searching:
@@ -156,7 +156,7 @@ def register(
         (start, s1), attempt, result, settled = anchored
     if not (result.converged or guessed or not rescue):
         result = _rescue(run, init, (start, s1), attempt, result, settled)
-    # the whole call: a probe or rescue that changed nothing ran after the answer was judged
+    # timed here, for the whole call: a probe or rescue may run after an answer is judged
     return replace(_second_opinion(run, result), seconds=time.perf_counter() - t_start)
 
 
@@ -213,7 +213,6 @@ class _Run:
     seed: int
     progress: ProgressFn
     dislocated: str | None
-    t_start: float
     # bone -> every answer the re-searches of every attempt gave it or replaced ((4, 4) each)
     found: dict[str, list[NDArray[np.float64]]] = field(default_factory=dict)
 
@@ -295,7 +294,7 @@ def _judged(run: _Run, a: _Attempt, settled: bool) -> MultiBodyResult:
     """The attempt judged (``settled``: see :func:`_settled`); its doubts flag it too, and its
     joints that no dislocation gives mark it ``implausible``."""
     result = _judge(a.views, a.fine, run.renderer, a.poses, a.stages, [*a.warnings, *a.doubts],
-                    a.disagreement, run.cfg, run.t_start, a.body, settled, a.faults)  # fmt: skip
+                    a.disagreement, run.cfg, a.body, settled, a.faults)  # fmt: skip
     return replace(result, implausible=tuple(a.implausible))
 
 
@@ -760,8 +759,8 @@ def _unsettled(settled: bool, metric: str, similarity: float, attainable: float,
             and similarity < cfg.unsettled_similarity * attainable)  # fmt: skip
 
 
-def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement, cfg, t_start,
-           body, settled: bool, faults=()) -> MultiBodyResult:  # fmt: skip
+def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement, cfg, body,
+           settled: bool, faults=()) -> MultiBodyResult:  # fmt: skip
     """The result with its similarity (all bones, finest level) and convergence flag
     (``settled``: whether stage 1's answer stands, :func:`_settled`; ``faults``: stage 2's
     warnings that flag it whatever else is said, :func:`_edges`)."""
@@ -803,7 +802,6 @@ def _judge(views, fine: Level, renderer, poses, stages, ambiguous, disagreement,
         similarity=similarity,
         converged=converged,
         stages=stages,
-        seconds=time.perf_counter() - t_start,
         stage1_bone=body,
         warnings=tuple(warnings),
         restart_disagreement=disagreement,
