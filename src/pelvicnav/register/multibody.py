@@ -45,11 +45,12 @@ from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.errors import pose_disagreement
 from pelvicnav.register.initial import about, initial_pose, initial_translation
 from pelvicnav.register.opinion import second_opinion
+from pelvicnav.register.polish import polish
 from pelvicnav.register.prior import MEASURED_POINTS, joint_prior
 from pelvicnav.register.pyramid import Level, build_levels, splat_renderer
 from pelvicnav.register.research import research
 from pelvicnav.register.result import MultiBodyResult, StageResult
-from pelvicnav.register.seeds import ANCHOR, PROBE, RESCUE, run_seed
+from pelvicnav.register.seeds import ANCHOR, POLISH, PROBE, RESCUE, run_seed
 from pelvicnav.register.settings import RegistrationSettings
 from pelvicnav.register.stage1 import pelvis_bones, run_stage1, stage1_body
 from pelvicnav.register.stage2 import Blocks, Stage2Problem, joint, rejoined, sweeps
@@ -156,8 +157,9 @@ def register(
         (start, s1), attempt, result, settled = anchored
     if not (result.converged or guessed or not rescue):
         result = _rescue(run, init, (start, s1), attempt, result, settled)
+    result = _polished(run, _second_opinion(run, result)) if searching else result
     # timed here, for the whole call: a probe or rescue may run after an answer is judged
-    return replace(_second_opinion(run, result), seconds=time.perf_counter() - t_start)
+    return replace(result, seconds=time.perf_counter() - t_start)
 
 
 def _anchored(run: _Run, answer: tuple, first: _Attempt, result: MultiBodyResult) -> tuple | None:
@@ -508,6 +510,25 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
             f"{op.rival_mm:.1f} mm / {op.rival_deg:.1f} deg away, scores as well or better at the "
             f"finest level in {which}")  # fmt: skip
     return replace(result, warnings=(*result.warnings, note))
+
+
+def _polished(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
+    """``result`` with its dislocated bone searched once more in gradient NCC at the finest level
+    (``RegistrationSettings.polish``, :mod:`~pelvicnav.register.polish`), the pose taken when it
+    scores better and the similarity read there; the verdict and warnings unchanged. Off
+    (``result`` as it is) by default, with one view or 9 DoF, or with no plan."""
+    cfg, bone = run.cfg, run.dislocated
+    if cfg.polish is None or bone is None or len(run.views) < 2 or cfg.stage1.dof != 6:
+        return result
+    fine = run.levels[-1]
+    found = polish(fine, run.renderer, result.poses, bone, cfg.polish, run_seed(run.seed, POLISH))
+    if found.lead <= 0:
+        return result
+    poses = {**result.poses, bone: found.pose}
+    bones = run.renderer.bones
+    stack = np.stack([poses[b] for b in bones])[None]
+    drrs = run.renderer.render(fine.index, bones, stack, fine.projections, fine.shape)
+    return replace(result, poses=poses, similarity=float(fine.score(drrs)[0]))
 
 
 def _rescued_note(first: MultiBodyResult) -> str:

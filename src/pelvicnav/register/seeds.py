@@ -14,6 +14,7 @@ __all__ = [
     "ANCHOR",
     "FINE",
     "JOINT",
+    "POLISH",
     "PROBE",
     "RAY",
     "REPASS",
@@ -26,6 +27,7 @@ __all__ = [
 ]
 
 STAGE1, SWEEP, JOINT, RESEARCH, REPASS, RESCUE, RAY, TURN, PROBE, FINE, ANCHOR = range(1, 12)
+POLISH = 12
 
 
 def run_seed(seed: int, stage: int, *path: int) -> int:

@@ -672,6 +672,15 @@ class RegistrationSettings:
         registrations whose answers were recorded (sessions 30-31), 0.01 keeps it flagged and
         unsettles two fine ones (419/15 and 367/36, leads 0.0035 and 0.0045); every other
         fine one led by 0.0106 or more. None switches it off.
+    polish : (float, int, int, float) or None
+        With a plan and two or more views (6 DoF), after the verdict: the dislocated bone
+        searched once more at the finest level by CMA-ES of gradient NCC from its answer, the
+        other bones fixed (:mod:`~pelvicnav.register.polish`): (sigma in mm and deg, population,
+        generations, half-width of the box about the answer in mm and deg), e.g.
+        ``(2.0, 12, 25, 4.0)``. The pose is taken when it scores better; the verdict and the
+        warnings stay those of the answer, ``similarity`` is the polished pose's. Default None
+        (off) until measured on the studies (session 35: on 20 registrations the dislocated
+        bone's error fell from a median of 0.38 to 0.20 mm).
     """
 
     pyramid: PyramidSettings = field(default_factory=PyramidSettings)
@@ -687,6 +696,7 @@ class RegistrationSettings:
     anchored_probe: bool = True
     intact_limits: tuple[float, float] | None = (5.0, 5.0)
     second_opinion: tuple[float, float] | None = (0.01, 0.0)
+    polish: tuple[float, int, int, float] | None = None
 
     def __post_init__(self) -> None:
         for name in ("lone_run_settles", "anchored_probe"):
@@ -705,6 +715,11 @@ class RegistrationSettings:
         ):
             raise ValueError(
                 f"intact_limits must be (mm, deg) > 0 or None, got {self.intact_limits}"
+            )
+        if self.polish is not None and not _valid_polish(self.polish):
+            raise ValueError(
+                "polish must be (sigma > 0, population >= 2, generations >= 1, box > 0) or "
+                f"None, got {self.polish!r}"
             )
         if self.second_opinion is not None and (
             not isinstance(self.second_opinion, tuple | list)
@@ -770,3 +785,13 @@ class RegistrationSettings:
         return cls(stage1=Stage1Settings(max_generations=(0, 0)),
                    stage2=Stage2Settings(mode="gradient", gradient_tol=2e-5),
                    research=ResearchSettings(restarts=0))  # fmt: skip
+
+
+def _valid_polish(polish) -> bool:
+    """Whether ``polish`` is (sigma > 0, population >= 2, generations >= 1, box > 0)."""
+    try:
+        sigma, population, generations, half = polish
+        ints = all(float(v) == int(v) for v in (population, generations))
+        return bool(sigma > 0 and half > 0 and ints and population >= 2 and generations >= 1)
+    except (TypeError, ValueError):
+        return False
