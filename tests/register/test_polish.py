@@ -1,5 +1,5 @@
 """The last local search of the dislocated bone in gradient NCC (``RegistrationSettings.polish``,
-off by default): it recovers a bone left off its optimum, never takes a worse pose, and leaves
+on by default): it recovers a bone left off its optimum, never takes a worse pose, and leaves
 the verdict alone."""
 
 from types import SimpleNamespace
@@ -13,7 +13,7 @@ from pelvicnav.register.polish import polish
 from pelvicnav.register.result import MultiBodyResult
 from pelvicnav.register.settings import RegistrationSettings
 
-POLISH = (2.0, 12, 25, 4.0)
+POLISH = RegistrationSettings().polish  # the shipped budget
 
 
 def _centre_error(renderer, bone, T, truth):
@@ -50,8 +50,9 @@ def test_the_verdict_and_warnings_stay_the_answers(two_bodies):
     assert np.array_equal(out.poses["b"], off["b"])
     assert _centre_error(renderer, "a", out.poses["a"], truth) < 0.5
     assert out.similarity != result.similarity  # read at the polished pose
-    # off by default, and with one view
-    for cfg, n in ((RegistrationSettings(), 2), (RegistrationSettings(polish=POLISH), 1)):
+    # switched off, and with one view
+    off, on = RegistrationSettings(polish=None), RegistrationSettings(polish=POLISH)
+    for cfg, n in ((off, 2), (on, 1)):
         run = SimpleNamespace(cfg=cfg, dislocated="a", views=[None] * n, levels=levels,
                               renderer=renderer, seed=0)  # fmt: skip
         assert mb._polished(run, result) is result

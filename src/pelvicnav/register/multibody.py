@@ -515,8 +515,8 @@ def _second_opinion(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
 def _polished(run: _Run, result: MultiBodyResult) -> MultiBodyResult:
     """``result`` with its dislocated bone searched once more in gradient NCC at the finest level
     (``RegistrationSettings.polish``, :mod:`~pelvicnav.register.polish`), the pose taken when it
-    scores better and the similarity read there; the verdict and warnings unchanged. Off
-    (``result`` as it is) by default, with one view or 9 DoF, or with no plan."""
+    scores better and the similarity read there; the verdict and warnings unchanged.
+    ``result`` as it is with ``polish=None``, one view or 9 DoF, or no plan."""
     cfg, bone = run.cfg, run.dislocated
     if cfg.polish is None or bone is None or len(run.views) < 2 or cfg.stage1.dof != 6:
         return result
