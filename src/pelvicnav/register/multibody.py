@@ -157,7 +157,9 @@ def register(
         (start, s1), attempt, result, settled = anchored
     if not (result.converged or guessed or not rescue):
         result = _rescue(run, init, (start, s1), attempt, result, settled)
-    result = _polished(run, _second_opinion(run, result)) if searching else result
+    result = _second_opinion(run, result)
+    if searching:  # not a tracked frame
+        result = _polished(run, result)
     # timed here, for the whole call: a probe or rescue may run after an answer is judged
     return replace(result, seconds=time.perf_counter() - t_start)
 
