@@ -58,7 +58,6 @@ from numpy.typing import NDArray
 from pelvicnav.drr.renderer import Renderer
 from pelvicnav.io.views import ViewSet
 from pelvicnav.metrics.errors import pose_disagreement
-from pelvicnav.metrics.similarity import GradientNCC
 from pelvicnav.register.pyramid import Level
 
 __all__ = ["SecondOpinion", "second_opinion"]
@@ -138,7 +137,7 @@ def second_opinion(
     bones = renderer.bones
     stack = np.stack([[T if b == bone else poses[b] for b in bones] for T in (kept, *others)])
     drrs = renderer.render(level.index, bones, stack, level.projections, level.shape)
-    ncc = sum(GradientNCC(img)(drrs[:, k]) for k, img in enumerate(level.images))
+    ncc = level.scored_by("gncc").score(drrs)
     own = level.score(drrs)
     lead, lead_level = ncc[0] - ncc[1:], own[0] - own[1:]
     k = int(np.argmin(np.minimum(lead, lead_level)))

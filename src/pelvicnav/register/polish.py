@@ -24,7 +24,6 @@ from numpy.typing import NDArray
 from pelvicnav.drr.renderer import Renderer
 from pelvicnav.geometry import projection as pj
 from pelvicnav.geometry import transforms as tf
-from pelvicnav.metrics.similarity import GradientNCC
 from pelvicnav.register.cmaes import minimize_cmaes
 from pelvicnav.register.pyramid import Level
 
@@ -68,9 +67,8 @@ def polish(
         background = renderer.render(level.index, others, stack, level.projections, level.shape)
     start = np.asarray(poses[bone], dtype=np.float64)
     centre = tf.apply(start, renderer.centroid(bone, level.index)[None])[0]
-    metrics = tuple(GradientNCC(img) for img in level.images)
-    objective = partial(_objective, level=level, renderer=renderer, bone=bone, start=start,
-                        centre=centre, background=background, metrics=metrics)  # fmt: skip
+    objective = partial(_objective, level=level.scored_by("gncc"), renderer=renderer,
+                        bone=bone, start=start, centre=centre, background=background)  # fmt: skip
     f0 = float(objective(np.zeros((1, 6)))[0])
     box = np.full(6, float(half))
     res = minimize_cmaes(objective, np.zeros(6), sigma=float(sigma), seed=seed,
@@ -83,10 +81,9 @@ def polish(
 
 
 def _objective(X: NDArray, *, level: Level, renderer: Renderer, bone: str, start: NDArray,
-               centre: NDArray, background, metrics: tuple) -> NDArray[np.float64]:  # fmt: skip
-    """Minus gradient NCC (summed over the views) of ``bone`` at parameters ``X`` (N, 6) about
-    ``centre`` from ``start``, over the others' fixed DRRs."""
+               centre: NDArray, background) -> NDArray[np.float64]:  # fmt: skip
+    """Minus ``level``'s score (gradient NCC summed over the views) of ``bone`` at parameters
+    ``X`` (N, 6) about ``centre`` from ``start``, over the others' fixed DRRs."""
     T = pj.six_dof_pose(X, center=centre) @ start
     drrs = renderer.render(level.index, [bone], T[:, None], level.projections, level.shape)
-    drrs = drrs + background
-    return -sum(m(drrs[:, k]) for k, m in enumerate(metrics))
+    return -level.score(drrs + background)

@@ -9,7 +9,7 @@ candidates with :meth:`Level.score`. Binning keeps pixel centres at integers
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -105,6 +105,11 @@ class Level:
     def score(self, drrs: NDArray) -> NDArray[np.float64]:
         """Similarity summed over the views: ``drrs`` (B, K, rows, cols) -> (B,)."""
         return sum(s(drrs[:, k]) for k, s in enumerate(self.similarities))
+
+    def scored_by(self, metric: str) -> Level:
+        """This level scoring its radiographs (``images``) in ``metric`` ("go" or "gncc")
+        instead: a second opinion or a search in the other similarity."""
+        return replace(self, similarities=tuple(_METRICS[metric](i) for i in self.images))
 
     def with_geometry(self, projections: Sequence[ArrayLike]) -> Level:
         """This level with the full-resolution ``projections`` (binned here) instead."""
